@@ -42,7 +42,7 @@ VENDOR_MM_PER_TICK = 0.28885
 VENDOR_AXLE_M = 0.266
 MAX_WHEEL_MM_S = 500
 
-REJECT_REASONS = ("length", "unknown_command", "trailer", "checksum")
+REJECT_REASONS = ("length", "unknown_command", "trailer", "checksum", "truncated")
 
 
 def checksum(data: bytes | bytearray | memoryview) -> int:
@@ -141,7 +141,12 @@ class FrameParser:
             pos = start
             frame, verdict = self._try_frame(buf, pos)
             if verdict == "incomplete":
-                break
+                later = self._complete_frame_after(buf, pos)
+                if later < 0:
+                    break
+                self.rejected["truncated"] += 1
+                pos = later
+                continue
             if frame is None:
                 self.rejected[verdict] += 1
                 pos += 1
@@ -154,6 +159,21 @@ class FrameParser:
             self.skipped_bytes += len(buf) - self._max_len
             del buf[: len(buf) - self._max_len]
         return frames
+
+    def _complete_frame_after(self, buf: bytearray, pos: int) -> int:
+        """Start of a complete valid frame after `pos`, or -1.
+
+        A header whose claimed length has not arrived yet may be noise (a cut-off frame). If a
+        complete, checksummed frame already starts inside its claimed span, the claim was
+        truncated: without this look-ahead that good frame would wait for unrelated later bytes,
+        or be lost when the stream stops.
+        """
+        nxt = buf.find(HEADER, pos + 1)
+        while nxt >= 0:
+            if self._try_frame(buf, nxt)[0] is not None:
+                return nxt
+            nxt = buf.find(HEADER, nxt + 1)
+        return -1
 
     def _try_frame(self, buf: bytearray, pos: int) -> tuple[Frame | None, str]:
         avail = len(buf) - pos

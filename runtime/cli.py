@@ -1,0 +1,195 @@
+"""The `safemove` command line.
+
+This module is the composition root: it alone imports drivers/ and sim_stub/ (lazily, per
+subcommand), so the pipeline stages stay free of devices and the robot image needs only what
+the command it runs uses. User mistakes are one line on stderr and exit code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+from typing import Any
+
+from runtime.config import LoadedConfig, load_config, render_calibration, render_config
+from runtime.errors import UserError
+
+log = logging.getLogger("safemove")
+
+
+def _add_config_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", type=Path, default=None,
+                   help="config file (default: the shipped runtime/default_config.yaml)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override one config key, e.g. --set base.port=/dev/ttyUSB0 (repeatable)")
+
+
+def _load(args: argparse.Namespace) -> LoadedConfig:
+    return load_config(args.config, args.overrides)
+
+
+def _print_json(obj: Any) -> None:
+    print(json.dumps(obj, separators=(",", ":")), flush=True)
+
+
+# --- subcommands -------------------------------------------------------------------------------
+
+
+def cmd_config_show(args: argparse.Namespace) -> int:
+    loaded = _load(args)
+    print(f"# config file: {loaded.config_path}")
+    print(render_config(loaded.config))
+    print(f"# calibration file: {loaded.calibration_path}")
+    print(render_calibration(loaded.calibration))
+    return 0
+
+
+def _drive_segments(args: argparse.Namespace) -> list:
+    from runtime.drive import Segment, parse_script
+    from runtime.types import Twist
+
+    if args.script is not None:
+        return parse_script(args.script)
+    if args.duration is None or args.duration <= 0:
+        raise UserError("drive: give --twist V OMEGA with --duration SECONDS > 0, or --script FILE")
+    v, omega = args.twist
+    return [Segment(Twist(v, omega), args.duration)]
+
+
+def _finish(report_dict: dict[str, Any], exit_code: int) -> int:
+    _print_json(report_dict)
+    return exit_code
+
+
+def cmd_drive(args: argparse.Namespace) -> int:
+    from runtime.app import run_job
+    from runtime.drive import DriveJob
+
+    loaded = _load(args)
+    job = DriveJob(_drive_segments(args))
+    report, link_stats = run_job(loaded, job)
+    return _finish({**report.as_dict(), "job": job.summary(), "link": link_stats}, report.exit_code)
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    """The service's job. Planners arrive with their issues; `hold` keeps the base stopped."""
+    from runtime.app import run_job
+    from runtime.drive import HoldJob
+
+    loaded = _load(args)
+    report, link_stats = run_job(loaded, HoldJob())
+    return _finish({**report.as_dict(), "link": link_stats}, report.exit_code)
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    """The main job for now: the runtime driving the emulated Spark base through a square."""
+    from runtime.app import run_job
+    from runtime.drive import DriveJob, Segment
+    from runtime.types import Twist
+    from sim_stub.emulator_process import EmulatorProcess
+
+    side = [Segment(Twist(0.2, 0.0), 2.5), Segment(Twist(0.0, 0.8), 1.9635)]  # 0.5 m, then 90°
+    with EmulatorProcess() as emu:
+        loaded = load_config(args.config, [*args.overrides, f"base.port={emu.link}"])
+        job = DriveJob(side * 4)
+        report, link_stats = run_job(loaded, job)
+        truth = emu.truth()
+    print(
+        f"drove a 0.5 m square on the emulated base: odometry ends at "
+        f"({report.odometry.x:+.3f}, {report.odometry.y:+.3f}) m, heading "
+        f"{report.odometry.theta:+.3f} rad; ground truth ({truth['x']:+.3f}, {truth['y']:+.3f}) m; "
+        f"{report.cycles} cycles, {report.misses} missed deadlines",
+        file=sys.stderr,
+    )
+    return _finish({**report.as_dict(), "job": job.summary(), "link": link_stats, "truth": truth},
+                   report.exit_code)
+
+
+def cmd_bench_loop(args: argparse.Namespace) -> int:
+    from runtime.bench import bench_loop
+
+    result = bench_loop(args.cycles, args.config, args.overrides)
+    if not args.json:
+        for key, value in result.items():
+            print(f"{key}: {value}")
+    _print_json(result)
+    return 0
+
+
+def cmd_base_emulator(args: argparse.Namespace) -> int:
+    from sim_stub.base_emulator import main as emulator_main
+
+    return emulator_main(args.emulator_args)
+
+
+# --- parser ------------------------------------------------------------------------------------
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="safemove",
+        description="SafeMove-RL local planner runtime for the NXROBO Spark.",
+    )
+    parser.add_argument("--log-level", default="INFO",
+                        choices=("DEBUG", "INFO", "WARNING", "ERROR"), help="stderr log level")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("run", help="run the control loop as the service does")
+    _add_config_args(p)
+    p.add_argument("--planner", choices=("hold",), default="hold",
+                   help="hold: keep the base stopped with the link, odometry and health live")
+    p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("drive", help="teleoperate the base: a fixed twist or a scripted list")
+    _add_config_args(p)
+    p.add_argument("--twist", nargs=2, type=float, metavar=("V", "OMEGA"), default=(0.0, 0.0),
+                   help="body velocity: V m/s forward, OMEGA rad/s counter-clockwise")
+    p.add_argument("--duration", type=float, help="seconds to hold --twist")
+    p.add_argument("--script", type=Path, help="YAML list of {v, omega, duration} segments")
+    p.set_defaults(func=cmd_drive)
+
+    p = sub.add_parser("demo", help="the runtime driving the emulated base through a square")
+    _add_config_args(p)
+    p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("config", help="inspect the configuration")
+    csub = p.add_subparsers(dest="config_command", required=True, metavar="ACTION")
+    cp = csub.add_parser("show", help="validate and print the effective config and calibration")
+    _add_config_args(cp)
+    cp.set_defaults(func=cmd_config_show)
+
+    p = sub.add_parser("bench", help="benchmarks; the last line of output is one JSON object")
+    bsub = p.add_subparsers(dest="bench_command", required=True, metavar="WHAT")
+    bp = bsub.add_parser("loop", help="the drive loop against the emulated base")
+    _add_config_args(bp)
+    bp.add_argument("--cycles", type=int, default=400, help="control cycles to run (default 400)")
+    bp.add_argument("--json", action="store_true", help="print only the JSON line")
+    bp.set_defaults(func=cmd_bench_loop)
+
+    p = sub.add_parser("base-emulator", add_help=False,
+                       help="the emulated Spark base on a pseudo-terminal (see --help)")
+    p.add_argument("emulator_args", nargs=argparse.REMAINDER)
+    p.set_defaults(func=cmd_base_emulator)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=args.log_level,
+        stream=sys.stderr,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    try:
+        return args.func(args)
+    except UserError as exc:
+        print(f"safemove: error: {exc}", file=sys.stderr)
+        return exc.exit_code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,235 @@
+"""The runtime config and the per-robot calibration file: schemas, loading, overrides.
+
+Every key is declared once here with its unit, default and allowed range; the shipped
+`runtime/default_config.yaml` and `calibration/spark_default.yaml` are renderings of these
+schemas (a test keeps them equal), so documentation and validation cannot drift apart.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from runtime.schema import (
+    apply_override,
+    build,
+    load_yaml_file,
+    render_documented,
+    section,
+    setting,
+)
+
+log = logging.getLogger("safemove.config")
+
+PACKAGE_DIR = Path(__file__).resolve().parent
+DEFAULT_CONFIG_PATH = PACKAGE_DIR / "default_config.yaml"
+DEFAULT_CALIBRATION_PATH = PACKAGE_DIR.parent / "calibration" / "spark_default.yaml"
+
+
+# --- calibration (per robot) ---------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CameraMount:
+    translation_m: tuple[float, float, float] = setting(
+        (0.094, 0.018, 0.643),
+        "D435 camera_link origin in base_link (x forward, y left, z up); vendor URDF default",
+        "m",
+        min=-2.0,
+        max=2.0,
+    )
+    rpy_deg: tuple[float, float, float] = setting(
+        (0.0, 0.0, 0.0),
+        "camera_link roll, pitch, yaw in base_link (pitch > 0 tilts the camera down)",
+        "deg",
+        min=-180.0,
+        max=180.0,
+    )
+
+
+@dataclass(frozen=True)
+class OdometryCalibration:
+    m_per_tick: float = setting(
+        0.00028885, "wheel travel per encoder tick", "m/tick", min=0.0, max=0.01, min_exclusive=True
+    )
+    axle_length_m: float = setting(
+        0.266, "distance between the wheel contact points (URDF says 0.262)", "m", min=0.1, max=1.0
+    )
+    left_encoder_offset: int = setting(
+        14,
+        "byte offset of the physically left wheel's encoder in feedback frames; check by commanding"
+        " omega > 0: the right wheel's count must rise faster and IMU yaw must increase",
+        choices=(10, 14),
+    )
+
+
+@dataclass(frozen=True)
+class Calibration:
+    camera: CameraMount = section(CameraMount, "camera extrinsics (camera_link in base_link)")
+    odometry: OdometryCalibration = section(OdometryCalibration, "wheel odometry constants")
+
+
+CALIBRATION_TITLE = (
+    "SafeMove per-robot calibration file.\n"
+    "Defaults are the NXROBO Spark vendor values; run `safemove calibrate` to measure your robot."
+)
+
+
+# --- runtime config ------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    control_hz: float = setting(20.0, "control loop rate", "Hz", min=1.0, max=200.0)
+    feedback_max_age_s: float = setting(
+        0.25,
+        "base feedback older than this puts the loop in DEGRADED (brake to a stop)",
+        "s",
+        min=0.02,
+        max=5.0,
+    )
+    startup_timeout_s: float = setting(
+        5.0,
+        "how long start-up waits for the first base feedback before refusing to start",
+        "s",
+        min=0.5,
+        max=120.0,
+    )
+    stats_interval_s: float = setting(
+        10.0, "how often the loop logs its timing statistics (0 = never)", "s", min=0.0, max=3600.0
+    )
+    stop_on_cliff: bool = setting(
+        True, "treat a cliff or wheel-drop report from the base as a hazard: brake and hold"
+    )
+
+
+@dataclass(frozen=True)
+class BaseConfig:
+    port: str = setting("/dev/sparkBase", "serial device of the Spark base (udev symlink)")
+    baud: int = setting(115200, "serial baud rate", "baud", choices=(9600, 57600, 115200, 230400))
+    resend_hz: float = setting(
+        20.0, "rate at which the current wheel command is resent to the base", "Hz", min=1.0, max=100.0
+    )
+    command_timeout_s: float = setting(
+        0.25,
+        "the link sends stop when the loop has not fed a command for this long",
+        "s",
+        min=0.05,
+        max=2.0,
+    )
+    query_retry_s: float = setting(
+        1.0,
+        "without feedback this long after connecting, send the well-formed query (then alternate)",
+        "s",
+        min=0.1,
+        max=10.0,
+    )
+    reconnect_min_s: float = setting(
+        0.1, "first wait before reopening a vanished port", "s", min=0.01, max=10.0
+    )
+    reconnect_max_s: float = setting(
+        2.0, "longest wait between reopen attempts (exponential backoff)", "s", min=0.1, max=60.0
+    )
+    glitch_ticks: int = setting(
+        1000, "a per-frame encoder jump this large is rejected as a glitch", "ticks", min=10
+    )
+    max_wheel_speed_m_s: float = setting(
+        0.5, "per-wheel speed limit of the firmware (±500 mm/s)", "m/s", min=0.05, max=0.5
+    )
+
+
+@dataclass(frozen=True)
+class LimitsConfig:
+    v_max: float = setting(0.3, "maximum forward speed", "m/s", min=0.0, max=0.5)
+    v_min: float = setting(
+        -0.1, "minimum (most negative) speed; the camera cannot see behind", "m/s", min=-0.5, max=0.0
+    )
+    omega_max: float = setting(1.0, "maximum turn rate magnitude", "rad/s", min=0.0, max=4.0)
+    accel_max: float = setting(
+        0.5, "maximum linear acceleration", "m/s^2", min=0.0, max=5.0, min_exclusive=True
+    )
+    decel_max: float = setting(
+        1.0,
+        "braking deceleration the base guarantees; used for stops and braking",
+        "m/s^2",
+        min=0.0,
+        max=5.0,
+        min_exclusive=True,
+    )
+    alpha_max: float = setting(
+        2.0, "maximum angular acceleration", "rad/s^2", min=0.0, max=20.0, min_exclusive=True
+    )
+
+
+@dataclass(frozen=True)
+class Config:
+    calibration_file: str = setting(
+        "",
+        "per-robot calibration file; relative paths are relative to this config file;"
+        " empty = the vendor defaults in calibration/spark_default.yaml",
+    )
+    loop: LoopConfig = section(LoopConfig, "control loop timing and health")
+    base: BaseConfig = section(BaseConfig, "Spark base serial link")
+    limits: LimitsConfig = section(LimitsConfig, "velocity and acceleration limits, applied last")
+
+
+CONFIG_TITLE = (
+    "SafeMove runtime configuration.\n"
+    "Every key is optional; a missing key takes the default shown. Units are SI.\n"
+    "Print the effective config with `safemove config show`; override with --set KEY=VALUE."
+)
+
+
+@dataclass(frozen=True)
+class LoadedConfig:
+    """The validated config, the calibration it refers to, and where each came from."""
+
+    config: Config
+    calibration: Calibration
+    config_path: Path
+    calibration_path: Path
+
+
+def _resolve_calibration_path(config: Config, config_path: Path) -> Path:
+    if not config.calibration_file:
+        return DEFAULT_CALIBRATION_PATH
+    path = Path(config.calibration_file).expanduser()
+    return path if path.is_absolute() else config_path.parent / path
+
+
+def load_calibration(path: Path) -> Calibration:
+    """Load and validate a calibration file."""
+    return build(Calibration, load_yaml_file(path, "calibration file"), str(path))
+
+
+def load_config(path: Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> LoadedConfig:
+    """Load, override and validate the config and its calibration; raises ConfigError (exit 2)."""
+    config_path = Path(path) if path is not None else DEFAULT_CONFIG_PATH
+    data: Any = load_yaml_file(config_path, "config file")
+    if data is None:
+        data = {}
+    source = str(config_path)
+    if overrides and isinstance(data, dict):  # a non-mapping file is reported by build()
+        for assignment in overrides:
+            apply_override(data, Config, assignment)
+        source += " (with --set " + ", ".join(overrides) + ")"
+    config = build(Config, data, source)
+    calibration_path = _resolve_calibration_path(config, config_path)
+    calibration = load_calibration(calibration_path)
+    if calibration_path == DEFAULT_CALIBRATION_PATH:
+        log.warning("using the vendor default calibration %s: calibrate this robot", calibration_path)
+    return LoadedConfig(config, calibration, config_path, calibration_path)
+
+
+def render_config(config: Config | None = None) -> str:
+    """Documented YAML for a config (the defaults when None): the shipped file is this text."""
+    return render_documented(config if config is not None else Config(), CONFIG_TITLE)
+
+
+def render_calibration(calibration: Calibration | None = None) -> str:
+    """Documented YAML for a calibration (the vendor defaults when None)."""
+    return render_documented(
+        calibration if calibration is not None else Calibration(), CALIBRATION_TITLE
+    )

@@ -1,0 +1,291 @@
+"""The control loop: the one place with timing, I/O and the safety state machine.
+
+Each cycle: drain base feedback → odometry → health check → the job's target (only while
+RUNNING) → NaN guard → limits → base. INIT → RUNNING ⇄ DEGRADED → STOPPED | FAULT.
+Stages are pure functions; this module owns the clock and calls them.
+"""
+
+from __future__ import annotations
+
+import enum
+import gc
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+from runtime.config import Calibration, Config
+from runtime.errors import DeviceError
+from runtime.limits import apply_limits
+from runtime.odometry import advance
+from runtime.sdnotify import SystemdNotifier
+from runtime.timing import RateKeeper, RingStats
+from runtime.types import STOP, Odometry, Twist, WheelIncrement
+
+log = logging.getLogger("safemove.loop")
+
+
+class State(str, enum.Enum):
+    INIT = "INIT"
+    RUNNING = "RUNNING"
+    DEGRADED = "DEGRADED"
+    STOPPED = "STOPPED"
+    FAULT = "FAULT"
+
+
+class BaseLink(Protocol):
+    """What the loop needs from the base driver (drivers.spark_link.SparkBaseLink)."""
+
+    @property
+    def last_feedback_time(self) -> float | None: ...
+
+    def poll(self) -> list[WheelIncrement]: ...
+
+    def set_command(self, twist: Twist, now: float) -> None: ...
+
+
+class Job(Protocol):
+    """What the loop runs: picks the target twist each RUNNING cycle."""
+
+    name: str
+
+    @property
+    def finished(self) -> bool: ...
+
+    def step(self, now: float, odom: Odometry) -> Twist: ...
+
+    def pause(self) -> None:
+        """The loop left RUNNING; time until it is back must not count as the job's time."""
+
+    def summary(self) -> dict[str, Any]: ...
+
+
+STAGES = ("base_read", "odometry", "job", "limits", "base_write", "cycle", "gc")
+GC_FULL_EVERY = 600  # cycles between full collections (30 s at 20 Hz)
+
+
+@dataclass
+class LoopReport:
+    """What a finished run reports (printed as JSON by the CLI and the benchmarks)."""
+
+    state: State
+    exit_code: int
+    reason: str
+    cycles: int
+    misses: int
+    degraded_cycles: int
+    nonfinite_commands: int
+    odometry: Odometry
+    timings: RingStats
+    transitions: list[tuple[float, str, str]] = field(default_factory=list)
+
+    def as_dict(self) -> dict[str, Any]:
+        o = self.odometry
+        return {
+            "state": self.state.value,
+            "exit_code": self.exit_code,
+            "reason": self.reason,
+            "cycles": self.cycles,
+            "misses": self.misses,
+            "degraded_cycles": self.degraded_cycles,
+            "nonfinite_commands": self.nonfinite_commands,
+            "odometry": {
+                "x": o.x, "y": o.y, "theta": o.theta, "distance": o.distance, "v": o.v,
+                "omega": o.omega,
+            },
+            "cycle_ms": self.timings.summary("cycle"),
+            "period_jitter_ms": self.timings.summary("period_jitter"),
+            "stage_ms": {s: self.timings.summary(s) for s in STAGES if s != "cycle"},
+            "transitions": [{"t": t, "from": a, "to": b} for t, a, b in self.transitions],
+        }
+
+
+class ControlLoop:
+    """Runs a job against the base at `control_hz` until it finishes, is stopped, or faults."""
+
+    def __init__(
+        self,
+        config: Config,
+        calibration: Calibration,
+        link: BaseLink,
+        job: Job,
+        notifier: SystemdNotifier,
+        clock: Callable[[], float] = time.monotonic,
+        max_cycles: int | None = None,
+    ) -> None:
+        self._cfg = config
+        self._axle = calibration.odometry.axle_length_m
+        self._link = link
+        self._job = job
+        self._notifier = notifier
+        self._clock = clock
+        self._max_cycles = max_cycles
+        self._stop = threading.Event()
+        self._stop_reason = ""
+        self.state = State.INIT
+        self.timings = RingStats((*STAGES, "period_jitter"))
+        self._ch = {name: self.timings.channel(name) for name in self.timings.names}
+        self._transitions: list[tuple[float, str, str]] = []
+        self._rate = RateKeeper(1.0 / config.loop.control_hz, clock, self._stop)
+        self.odometry = Odometry()
+
+    def request_stop(self, reason: str) -> None:
+        """Ask the loop to stop at once; safe to call from a signal handler."""
+        self._stop_reason = self._stop_reason or reason
+        self._stop.set()
+
+    def _set_state(self, state: State, now: float, why: str) -> None:
+        if state is self.state:
+            return
+        log.log(
+            logging.WARNING if state in (State.DEGRADED, State.FAULT) else logging.INFO,
+            "state %s -> %s: %s", self.state.value, state.value, why,
+        )
+        self._transitions.append((now, self.state.value, state.value))
+        self.state = state
+        self._notifier.status(f"{state.value}: {why}")
+
+    def _wait_for_feedback(self, period: float) -> bool:
+        """INIT: keep the base stopped until its first feedback; False if stopped meanwhile."""
+        deadline = self._clock() + self._cfg.loop.startup_timeout_s
+        while self._link.last_feedback_time is None:
+            now = self._clock()
+            if now > deadline:
+                raise DeviceError(
+                    f"base device {self._cfg.base.port}: no feedback within "
+                    f"{self._cfg.loop.startup_timeout_s:g} s (sent the vendor and the well-formed "
+                    "query); is the base powered on and is this its port?"
+                )
+            self._link.set_command(STOP, now)
+            if self._stop.wait(period):
+                return False
+        return True
+
+    def run(self) -> LoopReport:
+        """Run to the end. Exceptions inside a cycle become FAULT (exit 1) with the stop sent by
+        the link's close(), which the caller does in a finally."""
+        period = self._rate.period
+        counters = {"cycles": 0, "degraded": 0, "nonfinite": 0}
+        exit_code, reason = 0, ""
+        self._notifier.status("INIT: waiting for base feedback")
+        try:
+            if self._wait_for_feedback(period):
+                self._run_cycles(period, counters)
+            if self._job.finished:
+                reason = "job finished"
+            else:
+                reason = self._stop_reason or "stopped"
+            self._set_state(State.STOPPED, self._clock(), reason)
+        except DeviceError:
+            raise
+        except Exception as exc:  # a fault: log it whole, stop the robot, exit non-zero
+            log.exception("fault in the control loop")
+            reason = f"fault: {type(exc).__name__}: {exc}"
+            self._set_state(State.FAULT, self._clock(), reason)
+            exit_code = 1
+        finally:
+            gc.enable()
+        self._notifier.stopping(f"{self.state.value}: {reason}")
+        return LoopReport(
+            state=self.state,
+            exit_code=exit_code,
+            reason=reason,
+            cycles=counters["cycles"],
+            misses=self._rate.misses,
+            degraded_cycles=counters["degraded"],
+            nonfinite_commands=counters["nonfinite"],
+            odometry=self.odometry,
+            timings=self.timings,
+            transitions=self._transitions,
+        )
+
+    def _run_cycles(self, period: float, counters: dict[str, int]) -> None:
+        cfg = self._cfg
+        clock, ch, rec, rate = self._clock, self._ch, self.timings.record, self._rate
+        odom = self.odometry
+        command = STOP
+        hazard: str | None = None
+        gc.collect()
+        gc.freeze()  # start-up objects never need scanning again
+        gc.disable()  # collections run between cycles, below, never in the middle of one
+        rate.deadline = clock() + period
+        self._notifier.ready(f"RUNNING: {self._job.name}")
+        self._set_state(State.RUNNING, clock(), "base feedback arrived")
+        next_stats = clock() + cfg.loop.stats_interval_s
+        last_start: float | None = None
+        while not self._stop.is_set():
+            t0 = clock()
+            if last_start is not None:
+                rec(ch["period_jitter"], abs((t0 - last_start) - period))
+            last_start = t0
+
+            increments = self._link.poll()
+            t1 = clock()
+            rec(ch["base_read"], t1 - t0)
+            for inc in increments:
+                odom = advance(odom, inc, self._axle)
+                hazard = inc.hazard if cfg.loop.stop_on_cliff else None  # the latest frame decides
+            self.odometry = odom
+            t2 = clock()
+            rec(ch["odometry"], t2 - t1)
+
+            why = self._degraded_reason(t2, hazard)
+            if why is None:
+                self._set_state(State.RUNNING, t2, "inputs fresh")
+                target = self._job.step(t2, odom)
+            else:
+                if self.state is not State.DEGRADED:
+                    self._job.pause()
+                self._set_state(State.DEGRADED, t2, why)
+                counters["degraded"] += 1
+                target = STOP
+            if not target.is_finite():
+                counters["nonfinite"] += 1
+                log.error("non-finite command %r from %s: safe stop this cycle", target, self._job.name)
+                target = STOP
+            t3 = clock()
+            rec(ch["job"], t3 - t2)
+
+            command = apply_limits(target, command, period, cfg.limits)
+            t4 = clock()
+            rec(ch["limits"], t4 - t3)
+
+            self._link.set_command(command, t4)
+            t5 = clock()
+            rec(ch["base_write"], t5 - t4)
+            rec(ch["cycle"], t5 - t0)
+            counters["cycles"] += 1
+
+            if t5 - t0 < period:
+                self._notifier.kick_watchdog(t5)
+            if self._job.finished:
+                break
+            if self._max_cycles is not None and counters["cycles"] >= self._max_cycles:
+                self.request_stop("cycle limit reached")
+                break
+            if cfg.loop.stats_interval_s > 0 and t5 >= next_stats:
+                next_stats = t5 + cfg.loop.stats_interval_s
+                self._log_stats(counters, rate)
+            gen = 2 if counters["cycles"] % GC_FULL_EVERY == 0 else 0
+            gc.collect(gen)
+            rec(ch["gc"], clock() - t5)
+            rate.sleep()
+
+    def _degraded_reason(self, now: float, hazard: str | None) -> str | None:
+        if hazard is not None:
+            return hazard
+        last = self._link.last_feedback_time
+        age = now - last if last is not None else float("inf")
+        if age > self._cfg.loop.feedback_max_age_s:
+            return f"base feedback stale ({age * 1000:.0f} ms old)"
+        return None
+
+    def _log_stats(self, counters: dict[str, int], rate: RateKeeper) -> None:
+        cyc = self.timings.summary("cycle")
+        log.info(
+            "%s: %d cycles, %d missed deadlines, %d degraded; cycle p50 %.2f ms p99 %.2f ms max %.2f ms",
+            self.state.value, counters["cycles"], rate.misses, counters["degraded"],
+            cyc["p50"], cyc["p99"], cyc["max"],
+        )

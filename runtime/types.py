@@ -1,0 +1,99 @@
+"""Plain typed data passed between stages, drivers and the loop. SI units, host monotonic seconds."""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True, slots=True)
+class Twist:
+    """Body velocity command: v forward (m/s), omega counter-clockwise (rad/s)."""
+
+    v: float = 0.0
+    omega: float = 0.0
+
+    def is_finite(self) -> bool:
+        return math.isfinite(self.v) and math.isfinite(self.omega)
+
+
+STOP = Twist(0.0, 0.0)
+
+
+class CliffSensor(enum.IntFlag):
+    """Cliff sensors as reported by the base (already inverted from the wire's active-low)."""
+
+    RIGHT = 1
+    FRONT_RIGHT = 2
+    FRONT_LEFT = 4
+    LEFT = 8
+    BACK_RIGHT = 16
+    BACK_LEFT = 32
+
+
+class Proximity(enum.IntFlag):
+    """IR proximity 'bumpers' (active-high on the wire)."""
+
+    RIGHT = 1
+    FRONT_RIGHT = 2
+    FRONT = 4
+    FRONT_LEFT = 8
+    LEFT = 16
+    BACK_RIGHT = 32
+    BACK_LEFT = 64
+
+
+class BaseStatus(enum.IntFlag):
+    """Status byte of the base's feedback."""
+
+    WHEEL_DROP_RIGHT = 1
+    WHEEL_DROP_LEFT = 2
+    OVER_CURRENT_RIGHT = 4
+    OVER_CURRENT_LEFT = 8
+    UNDER_CONTROL = 16
+    SEARCHING_DOCK = 32
+    ON_DOCK = 64
+    CHARGER_PLUGGED = 128
+
+
+@dataclass(frozen=True, slots=True)
+class WheelIncrement:
+    """One feedback frame turned into SI motion since the previous accepted frame.
+
+    `t` is the host monotonic arrival time; `dt` the base's own clock difference, which is what
+    speeds are computed from (arrival jitter would otherwise show up as speed noise).
+    """
+
+    t: float
+    dt: float
+    d_left: float
+    d_right: float
+    gyro_z: float | None
+    yaw: float | None
+    cliffs: CliffSensor
+    proximity: Proximity
+    status: BaseStatus
+
+    @property
+    def hazard(self) -> str | None:
+        """A reason to stop at once that the base itself reports, or None."""
+        if self.cliffs:
+            return f"cliff detected ({self.cliffs!r})"
+        drop = self.status & (BaseStatus.WHEEL_DROP_LEFT | BaseStatus.WHEEL_DROP_RIGHT)
+        if drop:
+            return f"wheel drop ({BaseStatus(drop)!r})"
+        return None
+
+
+@dataclass(frozen=True, slots=True)
+class Odometry:
+    """Pose in the odom frame and body velocity, as of host time `t` (0 before any feedback)."""
+
+    t: float = 0.0
+    x: float = 0.0
+    y: float = 0.0
+    theta: float = 0.0
+    v: float = 0.0
+    omega: float = 0.0
+    distance: float = 0.0
