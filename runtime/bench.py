@@ -19,7 +19,7 @@ def bench_loop(cycles: int, config: Path | None, overrides: list[str]) -> dict[s
     with EmulatorProcess() as emu:
         loaded = load_config(config, [*overrides, f"base.port={emu.link}"])
         hz = loaded.config.loop.control_hz
-        job = DriveJob(pattern * (int(cycles / hz / 4.0) + 2))
+        job = DriveJob(pattern * (int(cycles / hz / 4.0) + 2), 1.0 / hz)
         report, link = run_job(loaded, job, max_cycles=cycles)
     full = report.as_dict()
     return {

@@ -69,7 +69,7 @@ def cmd_drive(args: argparse.Namespace) -> int:
     from runtime.drive import DriveJob
 
     loaded = _load(args)
-    job = DriveJob(_drive_segments(args))
+    job = DriveJob(_drive_segments(args), 1.0 / loaded.config.loop.control_hz)
     report, link_stats = run_job(loaded, job)
     return _finish({**report.as_dict(), "job": job.summary(), "link": link_stats}, report.exit_code)
 
@@ -94,7 +94,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     side = [Segment(Twist(0.2, 0.0), 2.5), Segment(Twist(0.0, 0.8), 1.9635)]  # 0.5 m, then 90°
     with EmulatorProcess() as emu:
         loaded = load_config(args.config, [*args.overrides, f"base.port={emu.link}"])
-        job = DriveJob(side * 4)
+        job = DriveJob(side * 4, 1.0 / loaded.config.loop.control_hz)
         report, link_stats = run_job(loaded, job)
         truth = emu.truth()
     print(

@@ -60,8 +60,9 @@ class DriveJob:
 
     name = "drive"
 
-    def __init__(self, segments: list[Segment]) -> None:
+    def __init__(self, segments: list[Segment], period_s: float) -> None:
         self._segments = segments
+        self._half_period = 0.5 * period_s
         self._ends = [sum(s.duration_s for s in segments[: i + 1]) for i in range(len(segments))]
         self._elapsed = 0.0
         self._last_now: float | None = None
@@ -75,12 +76,16 @@ class DriveJob:
         return self._finished
 
     def step(self, now: float, odom: Odometry) -> Twist:
-        """Target for this RUNNING cycle; time since the previous RUNNING cycle counts."""
+        """Target for this RUNNING cycle; time since the previous RUNNING cycle counts.
+
+        The command is held for one period, so a cycle belongs to the segment containing the
+        middle of that period: each segment gets round(duration / period) cycles, not ±1.
+        """
         if self._last_now is not None:
             self._elapsed += now - self._last_now
         self._last_now = now
         for segment, end in zip(self._segments, self._ends):
-            if self._elapsed < end:
+            if self._elapsed + self._half_period < end:
                 return segment.twist
         self._settle(now, odom)
         return STOP

@@ -18,8 +18,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-from typing_extensions import Self
-
 
 class EmulatorProcess:
     """`with EmulatorProcess(["--watchdog-s", "0.5"]) as emu: ... emu.link ...`"""
@@ -92,7 +90,7 @@ class EmulatorProcess:
         self._tmp.cleanup()
         return self._proc.returncode
 
-    def __enter__(self) -> Self:
+    def __enter__(self) -> EmulatorProcess:  # noqa: PYI034 - Python 3.10 has no typing.Self
         return self
 
     def __exit__(self, *exc: object) -> None:

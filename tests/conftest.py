@@ -1,0 +1,76 @@
+"""Shared fixtures: the base emulator process and the real `safemove` CLI as a child process."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from collections.abc import Iterator
+
+import pytest
+
+from sim_stub.emulator_process import EmulatorProcess
+
+
+@pytest.fixture
+def emulator(request: pytest.FixtureRequest) -> Iterator[EmulatorProcess]:
+    """A base emulator; pass its args with @pytest.mark.parametrize('emulator', [[...]], indirect=True)."""
+    args = getattr(request, "param", None) or []
+    emu = EmulatorProcess(args)
+    try:
+        yield emu
+    finally:
+        emu.close()
+
+
+class SafemoveProcess:
+    """The real `safemove` CLI in a child process (same interpreter), stdout/stderr captured."""
+
+    def __init__(self, args: list[str], env: dict[str, str] | None = None) -> None:
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "runtime.cli", *args],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})},
+        )
+        self.stdout = ""
+        self.stderr = ""
+
+    def signal(self, sig: signal.Signals) -> None:
+        self.proc.send_signal(sig)
+
+    def wait(self, timeout: float) -> int:
+        try:
+            self.stdout, self.stderr = self.proc.communicate(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.stdout, self.stderr = self.proc.communicate()
+            raise AssertionError(f"safemove did not exit within {timeout} s:\n{self.stderr[-3000:]}")
+        return self.proc.returncode
+
+    def report(self) -> dict:
+        lines = [ln for ln in self.stdout.splitlines() if ln.strip()]
+        assert lines, f"no output; stderr:\n{self.stderr[-3000:]}"
+        return json.loads(lines[-1])
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.communicate()
+
+
+@pytest.fixture
+def safemove() -> Iterator[type[SafemoveProcess]]:
+    started: list[SafemoveProcess] = []
+
+    class Tracked(SafemoveProcess):
+        def __init__(self, *a, **kw) -> None:
+            super().__init__(*a, **kw)
+            started.append(self)
+
+    yield Tracked
+    for p in started:
+        p.kill()
