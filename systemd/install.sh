@@ -152,6 +152,10 @@ else
 fi
 
 # --- 3. venv + package (runtime dependencies only, no dev/export/train extras) -------------
+# pyrealsense2's wheel links against libusb-1.0 and fails to import without it.
+if ! dpkg-query -W -f='${Status}' libusb-1.0-0 2>/dev/null | grep -q "install ok installed"; then
+    run apt-get install -y libusb-1.0-0 || die "cannot install the system package libusb-1.0-0"
+fi
 if [ -x "$PREFIX$VENV/bin/python" ]; then
     echo "reusing venv $PREFIX$VENV"
 else

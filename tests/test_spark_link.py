@@ -1,0 +1,136 @@
+"""The pyserial link on a real pseudo-terminal, with the test playing the base on the master side."""
+
+from __future__ import annotations
+
+import os
+import time
+import tty
+
+import pytest
+
+from drivers.spark_link import SparkBaseLink
+from drivers.spark_protocol import (
+    CMD_WHEEL_SPEED,
+    HOST_TO_BASE,
+    STOP_FRAME,
+    Feedback,
+    FrameParser,
+    decode_wheel_speed,
+    encode_feedback,
+)
+from runtime.config import BaseConfig, OdometryCalibration
+from runtime.types import Twist
+
+
+@pytest.fixture
+def pty_pair():
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    os.set_blocking(master, False)
+    yield master, os.ttyname(slave)
+    os.close(master)
+    os.close(slave)
+
+
+def read_commands(master: int, parser: FrameParser) -> list[tuple[int, int]]:
+    try:
+        data = os.read(master, 65536)
+    except BlockingIOError:
+        return []
+    return [decode_wheel_speed(f.payload) for f in parser.feed(data) if f.command == CMD_WHEEL_SPEED]
+
+
+def collect(master: int, seconds: float, feed=None) -> list[tuple[float, tuple[int, int]]]:
+    parser, out = FrameParser(HOST_TO_BASE), []
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        if feed is not None:
+            feed()
+        out += [(time.monotonic(), c) for c in read_commands(master, parser)]
+        time.sleep(0.005)
+    return out
+
+
+def make_link(port: str, **cfg) -> SparkBaseLink:
+    link = SparkBaseLink(BaseConfig(port=port, **cfg), OdometryCalibration())
+    link.open()
+    return link
+
+
+def test_current_command_is_resent_at_the_fixed_rate(pty_pair):
+    master, port = pty_pair
+    link = make_link(port, resend_hz=20.0)
+    try:
+        frames = collect(master, 1.2, feed=lambda: link.set_command(Twist(0.2, 0.0), time.monotonic()))
+    finally:
+        link.close()
+    moving = [t for t, c in frames if c == (692, 692)]
+    assert 19 <= len(moving) <= 25  # 20 Hz over ~1.1 s of motion
+    gaps = [b - a for a, b in zip(moving, moving[1:])]
+    assert max(gaps) < 0.1
+
+
+def test_stop_is_sent_when_the_loop_stops_feeding_commands(pty_pair):
+    master, port = pty_pair
+    link = make_link(port, command_timeout_s=0.25)
+    try:
+        link.set_command(Twist(0.2, 0.0), time.monotonic())
+        fed = time.monotonic()
+        frames = collect(master, 0.8)
+    finally:
+        link.close()
+    first_stop = next(t for t, c in frames if c == (0, 0) and t > fed + 0.05)
+    assert 0.2 <= first_stop - fed <= 0.4
+    assert all(c == (0, 0) for t, c in frames if t > first_stop)
+    assert link.stats().command_timeouts == 1
+
+
+def test_close_sends_stop_last(pty_pair):
+    master, port = pty_pair
+    link = make_link(port)
+    link.set_command(Twist(0.2, 0.0), time.monotonic())
+    time.sleep(0.2)
+    link.close()
+    parser = FrameParser(HOST_TO_BASE)
+    commands = read_commands(master, parser)
+    assert (692, 692) in commands and commands[-1] == (0, 0)
+    assert link.stats().stops_sent >= 2
+
+
+def test_fresh_connection_starts_with_stop_then_vendor_query(pty_pair):
+    master, port = pty_pair
+    link = make_link(port)
+    time.sleep(0.05)
+    link.close()
+    data = os.read(master, 4096)
+    assert data.startswith(STOP_FRAME + bytes.fromhex("534B020016000D0A"))
+
+
+def test_feedback_becomes_si_increments_across_the_u32_wrap(pty_pair):
+    master, port = pty_pair
+    link = make_link(port)
+    m_per_tick = OdometryCalibration().m_per_tick
+
+    def frame(left: int, right: int, time_ticks: int) -> bytes:
+        return encode_feedback(Feedback(0x3F, 0, 0, 0, 0, right & 0xFFFFFFFF, left & 0xFFFFFFFF,
+                                        time_ticks, (0, 0, 1), (0, 0, 57.29577951308232),
+                                        (0, 0, 0), (0, 0, 90.0)))
+
+    try:
+        os.write(master, frame(-100, -50, 1000) + b"\x00garbage" + frame(100, 250, 1200))
+        deadline = time.monotonic() + 2
+        incs = []
+        while not incs and time.monotonic() < deadline:
+            incs = link.poll()
+            time.sleep(0.01)
+    finally:
+        link.close()
+    assert len(incs) == 1
+    inc = incs[0]
+    assert inc.d_left == pytest.approx(200 * m_per_tick)
+    assert inc.d_right == pytest.approx(300 * m_per_tick)
+    assert inc.dt == pytest.approx(0.02)
+    assert inc.gyro_z == pytest.approx(1.0)
+    assert inc.yaw == pytest.approx(1.5707963, abs=1e-6)
+    assert inc.hazard is None
+    assert link.stats().skipped_bytes > 0
