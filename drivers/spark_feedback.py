@@ -15,16 +15,20 @@ from runtime.types import BaseStatus, CliffSensor, Proximity, WheelIncrement
 
 BASE_TICK_S = 1e-4  # base timestamp resolution: 0.1 ms
 CLIFF_MASK = 0x3F
+MAX_FRAME_GAP_S = 1.0  # consecutive frames on a live link are ~20 ms apart on the base clock
+MAX_CLOCK_DISAGREEMENT_S = 0.5  # host vs base clock over an outage (arrival jitter + latency)
 
 
 class FeedbackConverter:
     """Stateful conversion of successive feedback frames into increments.
 
     The first frame (and the first after `rebaseline`) only sets the baseline. A jump of
-    `glitch_ticks` or more in one frame is dropped while the baseline is kept, so a one-frame
-    spike costs nothing; after `max_consecutive_glitches` the counters are assumed to have been
-    reset (base reboot) and the baseline is taken afresh. After a reconnect the first delta may
-    span the outage: it is judged by the speed it implies over the base's own clock instead.
+    `glitch_ticks` or more in one frame, or a base clock that runs backwards or leaps, is
+    dropped while the baseline is kept, so a one-frame spike costs nothing; after
+    `max_consecutive_glitches` the counters are assumed to have been reset (base reboot) and the
+    baseline is taken afresh. After a reconnect the first delta may span the outage: it is
+    accepted only if the base clock advanced about as far as the host's and the speed it
+    implies is plausible; otherwise the baseline is retaken at once.
     """
 
     def __init__(
@@ -42,6 +46,8 @@ class FeedbackConverter:
         self._last: Feedback | None = None
         self._after_gap = False
         self._glitch_run = 0
+        self._last_t_host = 0.0
+        self.usable = False
         self.counts: Counter[str] = Counter()
 
     def mark_gap(self) -> None:
@@ -56,32 +62,37 @@ class FeedbackConverter:
         return (fb.encoder_14, fb.encoder_10) if self._left_is_14 else (fb.encoder_10, fb.encoder_14)
 
     def convert(self, fb: Feedback, t_host: float) -> WheelIncrement | None:
-        """The increment since the previous accepted frame, or None (baseline or rejected)."""
+        """The increment since the previous accepted frame, or None (baseline or rejected).
+
+        `usable` says afterwards whether the frame was taken (as an increment or as a new
+        baseline): only usable frames count as fresh feedback, so a converter that rejects
+        everything (a base whose counters restarted) makes the loop DEGRADED, not blind.
+        """
         last = self._last
         if last is None:
-            self._last = fb
-            self._after_gap = False
-            self.counts["baseline"] += 1
+            self._take_baseline(fb, t_host, "baseline")
             return None
         left_now, right_now = self._wheels(fb)
         left_last, right_last = self._wheels(last)
         d_left = signed_delta32(left_now, left_last)
         d_right = signed_delta32(right_now, right_last)
         dt = signed_delta32(fb.base_time, last.base_time) * BASE_TICK_S
-        if dt <= 0.0:
-            self.counts["stale_timestamp"] += 1
-            return None
-        if self._implausible(d_left, d_right, dt):
+        problem = self._problem(d_left, d_right, dt, t_host - self._last_t_host)
+        if problem is not None:
+            self.counts[problem] += 1
             self._glitch_run += 1
-            self.counts["glitch"] += 1
-            if self._glitch_run >= self._max_glitches:
-                self.counts["rebaseline"] += 1
-                self._glitch_run = 0
-                self._last = fb
+            # After an outage there is no pre-glitch baseline worth keeping: the base may have
+            # rebooted. Otherwise allow a few one-frame spikes before assuming a counter reset.
+            if self._after_gap or self._glitch_run >= self._max_glitches:
+                self._take_baseline(fb, t_host, "rebaseline")
+            else:
+                self.usable = False
             return None
         self._glitch_run = 0
         self._after_gap = False
         self._last = fb
+        self._last_t_host = t_host
+        self.usable = True
         return WheelIncrement(
             t=t_host,
             dt=dt,
@@ -94,8 +105,25 @@ class FeedbackConverter:
             status=BaseStatus(fb.status_bits),
         )
 
-    def _implausible(self, d_left: int, d_right: int, dt: float) -> bool:
+    def _take_baseline(self, fb: Feedback, t_host: float, why: str) -> None:
+        self.counts[why] += 1
+        self._last = fb
+        self._last_t_host = t_host
+        self._after_gap = False
+        self._glitch_run = 0
+        self.usable = True
+
+    def _problem(self, d_left: int, d_right: int, dt: float, host_dt: float) -> str | None:
+        """Why this frame's delta cannot be trusted, or None."""
+        if dt <= 0.0:
+            return "clock_backwards"
         biggest = max(abs(d_left), abs(d_right))
         if self._after_gap:
-            return biggest * self._m_per_tick / dt > self._max_plausible
-        return biggest >= self._glitch_ticks
+            # Across an outage the base clock must have advanced about as much as ours did;
+            # otherwise the base rebooted (or its clock wrapped) and the counts are unrelated.
+            if abs(dt - host_dt) > MAX_CLOCK_DISAGREEMENT_S + 0.2 * host_dt:
+                return "clock_jump"
+            return "glitch" if biggest * self._m_per_tick / dt > self._max_plausible else None
+        if dt > MAX_FRAME_GAP_S:
+            return "clock_jump"
+        return "glitch" if biggest >= self._glitch_ticks else None

@@ -124,7 +124,8 @@ class SparkBaseLink:
 
     @property
     def last_feedback_time(self) -> float | None:
-        """Host time of the latest feedback frame, whether or not it gave an increment."""
+        """Host time of the latest usable feedback frame (an increment or a new baseline);
+        frames the converter rejects do not count as fresh."""
         return self._last_feedback_time
 
     def stats(self) -> LinkStats:
@@ -285,9 +286,10 @@ class SparkBaseLink:
                 self._counts["undecodable"] += 1
                 continue
             self._counts["feedback_frames"] += 1
-            self._last_feedback_time = t
             self._feedback_since_connect = True
             inc = self._converter.convert(fb, t)
+            if self._converter.usable:
+                self._last_feedback_time = t
             if inc is None:
                 continue
             if len(self._incoming) >= FEEDBACK_QUEUE_LEN:

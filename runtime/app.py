@@ -12,7 +12,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 
 from drivers.spark_link import SparkBaseLink
-from runtime.config import LoadedConfig
+from runtime.config import DEFAULT_CALIBRATION_PATH, LoadedConfig
 from runtime.loop import ControlLoop, Job, LoopReport
 from runtime.sdnotify import SystemdNotifier
 
@@ -34,6 +34,9 @@ def _stop_on_signals(loop: ControlLoop) -> Iterator[None]:
 
 def run_job(loaded: LoadedConfig, job: Job, max_cycles: int | None = None) -> tuple[LoopReport, dict]:
     """Run `job` on the configured base until it ends; returns the loop report and link stats."""
+    if loaded.calibration_path == DEFAULT_CALIBRATION_PATH:
+        log.warning("using the vendor default calibration %s: calibrate this robot",
+                    loaded.calibration_path)
     link = SparkBaseLink(loaded.config.base, loaded.calibration.odometry)
     notifier = SystemdNotifier.from_environ()
     loop = ControlLoop(loaded.config, loaded.calibration, link, job, notifier, max_cycles=max_cycles)

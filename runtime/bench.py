@@ -29,6 +29,9 @@ def bench_loop(cycles: int, config: Path | None, overrides: list[str]) -> dict[s
         "misses": report.misses,
         "period_jitter_ms": full["period_jitter_ms"],
         "cycle_ms": full["cycle_ms"],
+        # same-run reference: the share of the control period one cycle uses (transfers better
+        # across machines than milliseconds do)
+        "cycle_p99_share_of_period": round(full["cycle_ms"]["p99"] / (1000.0 / hz), 5),
         "stage_ms": full["stage_ms"],
         "feedback_frames": link["feedback_frames"],
         "frames_sent": link["frames_sent"],

@@ -98,7 +98,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         report, link_stats = run_job(loaded, job)
         truth = emu.truth()
     print(
-        f"drove a 0.5 m square on the emulated base: odometry ends at "
+        f"drove an open-loop 0.5 m square on the emulated base: odometry ends at "
         f"({report.odometry.x:+.3f}, {report.odometry.y:+.3f}) m, heading "
         f"{report.odometry.theta:+.3f} rad; ground truth ({truth['x']:+.3f}, {truth['y']:+.3f}) m; "
         f"{report.cycles} cycles, {report.misses} missed deadlines",

@@ -7,7 +7,6 @@ schemas (a test keeps them equal), so documentation and validation cannot drift 
 
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -20,8 +19,6 @@ from runtime.schema import (
     section,
     setting,
 )
-
-log = logging.getLogger("safemove.config")
 
 PACKAGE_DIR = Path(__file__).resolve().parent
 DEFAULT_CONFIG_PATH = PACKAGE_DIR / "default_config.yaml"
@@ -218,8 +215,6 @@ def load_config(path: Path | None = None, overrides: list[str] | tuple[str, ...]
     config = build(Config, data, source)
     calibration_path = _resolve_calibration_path(config, config_path)
     calibration = load_calibration(calibration_path)
-    if calibration_path == DEFAULT_CALIBRATION_PATH:
-        log.warning("using the vendor default calibration %s: calibrate this robot", calibration_path)
     return LoadedConfig(config, calibration, config_path, calibration_path)
 
 

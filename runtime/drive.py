@@ -91,14 +91,17 @@ class DriveJob:
         return STOP
 
     def pause(self) -> None:
-        """The loop left RUNNING: the next RUNNING cycle starts a new time base."""
+        """The loop left RUNNING: the next RUNNING cycle starts a new time base. The last RUNNING
+        cycle's command was held for its period before the pause: that period counts."""
+        if self._last_now is not None:
+            self._elapsed += 2.0 * self._half_period
         self._last_now = None
 
     def _settle(self, now: float, odom: Odometry) -> None:
         if self._settle_started is None:
             self._settle_started = now
         still = abs(odom.v) < STILL_V and abs(odom.omega) < STILL_OMEGA
-        self._still_since = (self._still_since or now) if still else None
+        self._still_since = (now if self._still_since is None else self._still_since) if still else None
         if self._still_since is not None and now - self._still_since >= STILL_FOR_S:
             self._finished = self.settled = True
         elif now - self._settle_started > SETTLE_TIMEOUT_S:

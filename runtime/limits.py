@@ -2,15 +2,27 @@
 
 from __future__ import annotations
 
+import math
+
 from runtime.config import LimitsConfig
 from runtime.types import Twist
 
 
 def _step_towards(current: float, target: float, up: float, down: float) -> float:
-    """Move `current` toward `target`, by at most `up` when speeding up and `down` when slowing."""
-    speeding_up = abs(target) > abs(current) and (current == 0.0 or (target > 0) == (current > 0))
-    limit = up if speeding_up else down
-    return current + max(-limit, min(limit, target - current))
+    """Move `current` toward `target` in one step: by at most `down` while slowing toward zero
+    and `up` while speeding up. A step that crosses zero spends the part of the step left after
+    reaching zero speeding up, so reversing never accelerates at the braking rate."""
+    if target == current:
+        return target
+    slowing = current != 0.0 and (target == 0.0 or (target > 0) != (current > 0) or abs(target) < abs(current))
+    if not slowing:
+        return current + math.copysign(min(up, abs(target - current)), target - current)
+    if abs(target) < abs(current) and (target > 0) == (current > 0) and target != 0.0:
+        return current - math.copysign(min(down, abs(current - target)), current)
+    if abs(current) > down:
+        return current - math.copysign(down, current)
+    left_of_step = 1.0 - abs(current) / down
+    return math.copysign(min(abs(target), up * left_of_step), target) if target != 0.0 else 0.0
 
 
 def apply_limits(target: Twist, previous: Twist, dt: float, limits: LimitsConfig) -> Twist:
@@ -24,6 +36,9 @@ def apply_limits(target: Twist, previous: Twist, dt: float, limits: LimitsConfig
     v = _step_towards(previous.v, v, limits.accel_max * dt, limits.decel_max * dt)
     alpha = limits.alpha_max * dt
     omega = _step_towards(previous.omega, omega, alpha, alpha)
+    # float rounding in the rate step must not leave the box
+    v = min(limits.v_max, max(limits.v_min, v))
+    omega = min(limits.omega_max, max(-limits.omega_max, omega))
     if abs(v) < 1e-9:
         v = 0.0
     if abs(omega) < 1e-9:

@@ -215,6 +215,7 @@ class ControlLoop:
         self._set_state(State.RUNNING, clock(), "base feedback arrived")
         next_stats = clock() + cfg.loop.stats_interval_s
         last_start: float | None = None
+        last_full_gc = 0
         while not self._stop.is_set():
             t0 = clock()
             if last_start is not None:
@@ -268,8 +269,11 @@ class ControlLoop:
             if cfg.loop.stats_interval_s > 0 and t5 >= next_stats:
                 next_stats = t5 + cfg.loop.stats_interval_s
                 self._log_stats(counters, rate)
-            gen = 2 if counters["cycles"] % GC_FULL_EVERY == 0 else 0
-            gc.collect(gen)
+            # A full collection can take ~10 ms: run it only with at least half a period of slack.
+            full = counters["cycles"] - last_full_gc >= GC_FULL_EVERY and rate.deadline - t5 > 0.5 * period
+            if full:
+                last_full_gc = counters["cycles"]
+            gc.collect(2 if full else 0)
             rec(ch["gc"], clock() - t5)
             rate.sleep()
 

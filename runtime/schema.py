@@ -164,9 +164,9 @@ def load_yaml_file(path: Path, what: str) -> Any:
         return yaml.safe_load(text)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
-        line = f" line {mark.line + 1}" if mark is not None else ""
+        line = f" line {mark.line + 1}:" if mark is not None else ""
         problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
-        raise ConfigError(f"{path}:{line}: invalid YAML: {problem}") from None
+        raise ConfigError(f"{path}:{line} invalid YAML: {problem}") from None
 
 
 def apply_override(data: dict[str, Any], cls: type, assignment: str) -> None:
@@ -195,10 +195,9 @@ def apply_override(data: dict[str, Any], cls: type, assignment: str) -> None:
             return
         if not is_dataclass(tp):
             raise ConfigError(f"--set {key}: '{'.'.join(parts[: i + 1])}' is not a section")
-        child = node.get(part)
+        child = node.setdefault(part, {})
         if not isinstance(child, dict):
-            child = {}
-            node[part] = child
+            return  # the file's own section is malformed: build() reports it, naming the file
         node, node_cls = child, tp
 
 

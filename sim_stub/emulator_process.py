@@ -8,7 +8,6 @@ for one with a deadline.
 from __future__ import annotations
 
 import json
-import os
 import queue
 import subprocess
 import sys
@@ -96,7 +95,3 @@ class EmulatorProcess:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-
-def env_for_child() -> dict[str, str]:
-    """Environment for a child `safemove` process: unbuffered, same interpreter path."""
-    return {**os.environ, "PYTHONUNBUFFERED": "1"}

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import os
 import time
 import tty
@@ -66,7 +67,7 @@ def test_current_command_is_resent_at_the_fixed_rate(pty_pair):
         link.close()
     moving = [t for t, c in frames if c == (692, 692)]
     assert 19 <= len(moving) <= 25  # 20 Hz over ~1.1 s of motion
-    gaps = [b - a for a, b in zip(moving, moving[1:])]
+    gaps = [b - a for a, b in itertools.pairwise(moving)]
     assert max(gaps) < 0.1
 
 

@@ -12,7 +12,7 @@ import pytest
 from runtime.config import Calibration, Config
 from runtime.loop import ControlLoop
 from runtime.sdnotify import SystemdNotifier
-from runtime.types import STOP, Odometry, Twist
+from runtime.types import Odometry, Twist
 
 pytestmark = pytest.mark.hil
 
