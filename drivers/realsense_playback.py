@@ -1,0 +1,101 @@
+"""DepthSource that replays a pyrealsense2 recording (.db3, or a legacy ROS 1 .bag).
+
+Uses the real `rs.pipeline` with `enable_device_from_file(path, repeat_playback=False)`. The
+playback device is put into non-real-time mode *before* the pipeline starts (via
+`config.resolve`): set after `start()`, the first frames are already read in real time and the
+pipeline's one-frame queue drops them. In non-real-time mode the reader waits for us, so no
+frame is skipped however slowly we poll. The recorded timestamps (ms) are the clock (s).
+End of file is `at_end` (playback status stopped and nothing left), never a stall.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pyrealsense2 as rs
+
+from drivers.depth_source import DepthFrame, DepthIntrinsics
+from runtime.errors import UserError
+
+
+class PlaybackDepthSource:
+    """Replays the depth stream of a recording; poll() never waits more than `poll_timeout_ms`."""
+
+    def __init__(self, path: str | os.PathLike, poll_timeout_ms: int = 2) -> None:
+        self.path = os.fspath(path)
+        self.poll_timeout_ms = int(poll_timeout_ms)
+        self.intrinsics: DepthIntrinsics | None = None
+        self._pipe: rs.pipeline | None = None
+        self._playback = None
+        self._at_end = False
+        self.frames_delivered = 0
+
+    def start(self) -> None:
+        if not os.path.isfile(self.path):
+            raise UserError(f"{self.path}: recording not found")
+        pipe = rs.pipeline()
+        cfg = rs.config()
+        try:
+            cfg.enable_device_from_file(self.path, repeat_playback=False)
+            cfg.enable_stream(rs.stream.depth)
+            cfg.resolve(rs.pipeline_wrapper(pipe)).get_device().as_playback().set_real_time(False)
+            profile = pipe.start(cfg)
+        except RuntimeError as e:
+            msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+            raise UserError(f"{self.path}: not a readable RealSense recording ({msg})") from None
+        try:
+            playback = profile.get_device().as_playback()
+            playback.set_real_time(False)
+            vsp = profile.get_stream(rs.stream.depth).as_video_stream_profile()
+            i = vsp.get_intrinsics()
+            scale = profile.get_device().first_depth_sensor().get_depth_scale()
+        except RuntimeError as e:
+            pipe.stop()
+            raise UserError(f"{self.path}: recording has no usable depth stream ({e})") from None
+        self.intrinsics = DepthIntrinsics(
+            width=i.width, height=i.height, fx=i.fx, fy=i.fy, cx=i.ppx, cy=i.ppy,
+            depth_unit_m=float(scale),
+        )
+        self._pipe, self._playback, self._at_end = pipe, playback, False
+
+    def _try_frame(self, timeout_ms: int) -> DepthFrame | None:
+        ok, frames = self._pipe.try_wait_for_frames(timeout_ms)
+        if not ok:
+            return None
+        df = frames.get_depth_frame()
+        if not df:
+            return None
+        depth = np.asanyarray(df.get_data()).copy()
+        frame = DepthFrame(depth=depth, t=df.get_timestamp() / 1000.0,
+                           frame_number=int(df.get_frame_number()), intrinsics=self.intrinsics)
+        del df, frames
+        self.frames_delivered += 1
+        return frame
+
+    def poll(self) -> DepthFrame | None:
+        if self._pipe is None or self._at_end:
+            return None
+        frame = self._try_frame(self.poll_timeout_ms)
+        if frame is not None:
+            return frame
+        if self._playback.current_status() == rs.playback_status.stopped:
+            # the reader has finished; take anything still in flight before calling it the end
+            frame = self._try_frame(self.poll_timeout_ms)
+            if frame is None:
+                self._at_end = True
+            return frame
+        return None
+
+    @property
+    def at_end(self) -> bool:
+        return self._at_end
+
+    def stop(self) -> None:
+        if self._pipe is not None:
+            try:
+                self._pipe.stop()
+            except RuntimeError:
+                pass
+            self._pipe = None
+            self._playback = None

@@ -1,0 +1,273 @@
+"""The simulated 2D world: static obstacles, an ORCA crowd and the diff-drive robot, judged from
+ground truth.
+
+Everything is deterministic from the seed: one `numpy.random.Generator` draws the robot's start,
+its goal (unless given), the agents' positions, goals and speeds; goal re-draws on arrival use a
+second generator spawned from the same seed.
+
+Order inside `World.step(dt, v, omega)`: the crowd chooses its velocities by ORCA from the current
+state (seeing the robot as a non-reactive neighbour when the scenario's crowd is reactive), the
+crowd moves, the robot applies the command through its acceleration limits and moves, the clock
+advances, then the episode is judged: collision, else success, else timeout. Contacts are checked
+at step ends only (no sweeping), which at dt = 0.1 s and these speeds cannot skip a contact of
+0.47 m combined radius by more than a few centimetres of overlap.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from runtime.config import LimitsConfig
+from runtime.errors import ConfigError
+from sim_stub.orca import Body, Circle, Crowd, OrcaParams, Shape, rectangle, segment_box
+from sim_stub.scenario import BoxSpec, CylinderSpec, Scenario, WallSpec
+
+ROBOT_RADIUS_M = 0.17
+MOVING_SPEED_M_S = 0.01  # |v| above this at contact: the robot is at fault
+_SPAWN_TRIES = 2000
+
+
+@dataclass
+class RobotState:
+    """Diff-drive robot ground truth: pose in the world frame and body velocity."""
+
+    x: float
+    y: float
+    theta: float
+    v: float = 0.0
+    omega: float = 0.0
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """Judgement of the episode so far. status: running | success | collision | timeout."""
+
+    status: str
+    t: float
+    collided_with: str | None = None  # "agent 3" or "obstacle 1"
+    at_fault: bool | None = None  # collisions only: the robot was moving at contact
+
+    @property
+    def done(self) -> bool:
+        return self.status != "running"
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """Plain arrays for the renderer and the tracker's ground truth."""
+
+    t: float
+    agent_positions: np.ndarray  # (N, 2) m
+    agent_velocities: np.ndarray  # (N, 2) m/s
+    agent_radii: np.ndarray  # (N,) m
+    robot_pose: np.ndarray  # (3,) x, y, theta
+    robot_velocity: np.ndarray  # (2,) v, omega
+    robot_radius: float
+    goal: np.ndarray  # (2,)
+
+
+def obstacle_shape(spec: BoxSpec | CylinderSpec | WallSpec) -> Shape:
+    """The 2D footprint of a static obstacle."""
+    if isinstance(spec, CylinderSpec):
+        return Circle(spec.center, spec.radius)
+    if isinstance(spec, BoxSpec):
+        return rectangle(spec.center, spec.size, math.radians(spec.yaw_deg))
+    return segment_box(spec.start, spec.end, spec.thickness)
+
+
+def _approach(current: float, target: float, accel: float, decel: float, dt: float) -> float:
+    """Move `current` towards `target`; speeding up limited by accel, slowing down by decel."""
+    speeding_up = abs(target) > abs(current) and current * target >= 0.0
+    step = (accel if speeding_up else decel) * dt
+    return current + max(-step, min(step, target - current))
+
+
+class World:
+    """One episode of a scenario: crowd + obstacles + robot, judged from ground truth."""
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        seed: int | None = None,
+        goal_index: int | None = None,
+        limits: LimitsConfig = LimitsConfig(),  # noqa: B008 - frozen dataclass
+        robot_radius: float = ROBOT_RADIUS_M,
+    ) -> None:
+        self.scenario = scenario
+        self.seed = scenario.seed if seed is None else seed
+        self.limits = limits
+        self.robot_radius = robot_radius
+        self.obstacles = scenario.obstacles
+        self.shapes: list[Shape] = [obstacle_shape(o) for o in scenario.obstacles]
+        self.t = 0.0
+        self.min_separation = math.inf  # smallest robot-agent gap seen (m)
+        rng = np.random.default_rng(self.seed)
+        self._goal_rng = np.random.default_rng([self.seed, 1])
+
+        if goal_index is None:
+            goal_index = int(rng.integers(len(scenario.goals)))
+        if not 0 <= goal_index < len(scenario.goals):
+            raise ConfigError(
+                f"{scenario.source}: goal index {goal_index} out of range"
+                f" (scenario has {len(scenario.goals)} goals)"
+            )
+        self.goal = np.array(scenario.goals[goal_index], dtype=float)
+        self.robot = self._place_robot(rng)
+        self.crowd = self._make_crowd(rng)
+        self.outcome = Outcome("running", 0.0)
+
+    # --- construction ----------------------------------------------------------------------------
+
+    def clearance(self, points: np.ndarray) -> np.ndarray:
+        """Distance from each point (K, 2) to the nearest static obstacle (inf when none)."""
+        points = np.asarray(points, dtype=float).reshape(-1, 2)
+        out = np.full(len(points), np.inf)
+        for shape in self.shapes:
+            out = np.minimum(out, shape.distance(points))
+        return out
+
+    def _uniform(self, rng: np.random.Generator, rect: object, margin: float) -> np.ndarray:
+        x0, x1 = rect.x_min + margin, rect.x_max - margin  # type: ignore[attr-defined]
+        y0, y1 = rect.y_min + margin, rect.y_max - margin  # type: ignore[attr-defined]
+        if x0 > x1:
+            x0 = x1 = 0.5 * (x0 + x1)
+        if y0 > y1:
+            y0 = y1 = 0.5 * (y0 + y1)
+        return np.array([rng.uniform(x0, x1), rng.uniform(y0, y1)])
+
+    def _place_robot(self, rng: np.random.Generator) -> RobotState:
+        spec = self.scenario.robot
+        for _ in range(_SPAWN_TRIES):
+            p = self._uniform(rng, spec.area, 0.0)
+            if self.clearance(p)[0] >= self.robot_radius + 0.05:
+                break
+        else:
+            raise ConfigError(f"{self.scenario.source}: key 'robot.area': no free start position")
+        jitter = math.radians(spec.heading_jitter_deg)
+        theta = math.radians(spec.heading_deg) + rng.uniform(-jitter, jitter)
+        return RobotState(float(p[0]), float(p[1]), math.atan2(math.sin(theta), math.cos(theta)))
+
+    def _free_point(self, rng: np.random.Generator, radius: float, taken: list, gap: float) -> np.ndarray:
+        for _ in range(_SPAWN_TRIES):
+            p = self._uniform(rng, self.scenario.area, radius)
+            if self.clearance(p)[0] < radius + 0.1:
+                continue
+            if all(np.hypot(*(p - q)) >= r + radius + gap for q, r in taken):
+                return p
+        raise ConfigError(
+            f"{self.scenario.source}: key 'crowd.count': cannot place {self.scenario.crowd.count}"
+            " agents in the free area"
+        )
+
+    def _make_crowd(self, rng: np.random.Generator) -> Crowd:
+        spec = self.scenario.crowd
+        n = spec.count
+        taken: list = [((self.robot.x, self.robot.y), self.robot_radius + 1.0)]
+        positions = np.zeros((n, 2))
+        for i in range(n):
+            positions[i] = self._free_point(rng, spec.radius, taken, 0.2)
+            taken.append((positions[i], spec.radius))
+        goals = np.array([self._draw_goal(rng, positions[i]) for i in range(n)]).reshape(n, 2)
+        speeds = rng.uniform(spec.speed_range[0], spec.speed_range[1], size=n)
+        params = OrcaParams(
+            time_horizon=spec.time_horizon_s,
+            obstacle_time_horizon=spec.obstacle_time_horizon_s,
+            neighbour_distance=spec.neighbour_distance_m,
+            max_neighbours=spec.max_neighbours,
+        )
+        return Crowd(
+            positions,
+            goals,
+            spec.radius,
+            speeds,
+            params=params,
+            goal_sampler=lambda i, p: self._draw_goal(self._goal_rng, p),
+        )
+
+    def _draw_goal(self, rng: np.random.Generator, position: np.ndarray) -> np.ndarray:
+        spec = self.scenario.crowd
+        best, best_d = None, -1.0
+        for _ in range(200):
+            g = self._uniform(rng, self.scenario.area, spec.radius)
+            if self.clearance(g)[0] < spec.radius + 0.1:
+                continue
+            d = float(np.hypot(*(g - position)))
+            if d >= spec.goal_min_distance_m:
+                return g
+            if d > best_d:
+                best, best_d = g, d
+        if best is None:
+            raise ConfigError(f"{self.scenario.source}: key 'area': no free goal for the crowd")
+        return best
+
+    # --- stepping --------------------------------------------------------------------------------
+
+    def robot_body(self) -> Body:
+        r = self.robot
+        vel = (r.v * math.cos(r.theta), r.v * math.sin(r.theta))
+        return Body((r.x, r.y), vel, self.robot_radius)
+
+    def step(self, dt: float, v_cmd: float, omega_cmd: float) -> Outcome:
+        """Advance the world by dt with the robot's body-velocity command; returns the judgement.
+
+        Once the episode is over the world no longer moves and the final outcome is returned.
+        """
+        if self.outcome.done:
+            return self.outcome
+        others = [self.robot_body()] if self.scenario.crowd.reactive else []
+        self.crowd.step(dt, self.shapes, others)
+        self._move_robot(dt, v_cmd, omega_cmd)
+        self.t += dt
+        self.outcome = self.judge()
+        return self.outcome
+
+    def _move_robot(self, dt: float, v_cmd: float, omega_cmd: float) -> None:
+        lim, r = self.limits, self.robot
+        r.v = _approach(r.v, v_cmd, lim.accel_max, lim.decel_max, dt)
+        r.omega = _approach(r.omega, omega_cmd, lim.alpha_max, lim.alpha_max, dt)
+        dth = r.omega * dt
+        if abs(dth) < 1e-9:
+            r.x += r.v * dt * math.cos(r.theta)
+            r.y += r.v * dt * math.sin(r.theta)
+        else:  # exact arc
+            rad = r.v / r.omega
+            r.x += rad * (math.sin(r.theta + dth) - math.sin(r.theta))
+            r.y -= rad * (math.cos(r.theta + dth) - math.cos(r.theta))
+        r.theta = math.atan2(math.sin(r.theta + dth), math.cos(r.theta + dth))
+
+    def judge(self) -> Outcome:
+        """Collision (with fault), success, timeout or running, from the current ground truth."""
+        p = np.array([self.robot.x, self.robot.y])
+        at_fault = abs(self.robot.v) > MOVING_SPEED_M_S
+        if len(self.crowd):
+            gaps = (
+                np.hypot(*(self.crowd.positions - p).T) - self.crowd.radii - self.robot_radius
+            )
+            k = int(np.argmin(gaps))
+            self.min_separation = min(self.min_separation, float(gaps[k]))
+            if gaps[k] < 0.0:
+                return Outcome("collision", self.t, f"agent {k}", at_fault)
+        for o, shape in enumerate(self.shapes):
+            if shape.distance(p[None])[0] < self.robot_radius:
+                return Outcome("collision", self.t, f"obstacle {o}", at_fault)
+        if np.hypot(*(self.goal - p)) <= self.scenario.goal_tolerance_m:
+            return Outcome("success", self.t)
+        if self.t >= self.scenario.time_limit_s - 1e-9:
+            return Outcome("timeout", self.t)
+        return Outcome("running", self.t)
+
+    def snapshot(self) -> Snapshot:
+        r = self.robot
+        return Snapshot(
+            t=self.t,
+            agent_positions=self.crowd.positions.copy(),
+            agent_velocities=self.crowd.velocities.copy(),
+            agent_radii=self.crowd.radii.copy(),
+            robot_pose=np.array([r.x, r.y, r.theta]),
+            robot_velocity=np.array([r.v, r.omega]),
+            robot_radius=self.robot_radius,
+            goal=self.goal.copy(),
+        )
