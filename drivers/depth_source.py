@@ -8,23 +8,11 @@ not ray length. `t` is host-monotonic seconds; in playback the recorded stamps a
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
-import numpy as np
+from runtime.types import DepthFrame, DepthIntrinsics
 
-
-@dataclass(frozen=True)
-class DepthIntrinsics:
-    """Pinhole intrinsics of a depth stream (D435 depth has zero distortion)."""
-
-    width: int
-    height: int
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    depth_unit_m: float = 0.001
+__all__ = ["D435_848x480", "DepthFrame", "DepthIntrinsics", "DepthSource"]
 
 
 def _d435_848x480() -> DepthIntrinsics:
@@ -33,21 +21,7 @@ def _d435_848x480() -> DepthIntrinsics:
 
 
 D435_848x480 = _d435_848x480()
-"""Nominal D435 depth intrinsics at 848x480 (~87 deg HFOV, fx = fy ~ 424.7 px, 1 mm units)."""
-
-
-@dataclass
-class DepthFrame:
-    """One depth image, owned by us (copied out of any SDK buffer)."""
-
-    depth: np.ndarray  # uint16, shape (height, width), Z16 in intrinsics.depth_unit_m
-    t: float  # seconds (host monotonic; in playback the recorded timestamps)
-    frame_number: int
-    intrinsics: DepthIntrinsics
-
-    def depth_m(self) -> np.ndarray:
-        """Depth in metres as float32 (0 stays 0 = invalid)."""
-        return self.depth.astype(np.float32) * np.float32(self.intrinsics.depth_unit_m)
+"""Nominal D435 depth intrinsics at 848x480 (87 deg HFOV: fx = fy = 424 / tan(43.5 deg) = 446.8 px, 1 mm units)."""
 
 
 @runtime_checkable

@@ -119,6 +119,41 @@ def cmd_bench_loop(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_sim(args: argparse.Namespace) -> int:
+    from runtime.bench import bench_sim
+
+    result = bench_sim(args.frames, args.steps)
+    if not args.json:
+        for key, value in result.items():
+            print(f"{key}: {value}")
+    _print_json(result)
+    return 0
+
+
+def cmd_sim(args: argparse.Namespace) -> int:
+    from sim_stub.sim_server import main as sim_main
+
+    return sim_main(args.sim_args)
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    from runtime.types import Twist
+    from sim_stub.recording import record, simulated_frames
+    from sim_stub.scenario import load_scenario
+
+    if args.frames < 1 or not 0 < args.fps <= 90:
+        raise UserError("record: --frames must be ≥ 1 and --fps in (0, 90]")
+    loaded = _load(args)
+    scenario = load_scenario(args.scenario)
+    frames = simulated_frames(scenario, args.frames, args.fps, Twist(*args.twist),
+                              loaded.calibration.camera, loaded.config.limits, args.seed,
+                              args.noise)
+    written = record(args.output, frames, args.fps)
+    _print_json({"recording": str(args.output), "frames": written, "fps": args.fps,
+                 "scenario": scenario.name})
+    return 0
+
+
 def cmd_base_emulator(args: argparse.Namespace) -> int:
     from sim_stub.base_emulator import main as emulator_main
 
@@ -168,6 +203,29 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--cycles", type=int, default=400, help="control cycles to run (default 400)")
     bp.add_argument("--json", action="store_true", help="print only the JSON line")
     bp.set_defaults(func=cmd_bench_loop)
+
+    bp = bsub.add_parser("sim", help="depth rendering, world stepping and playback speed")
+    bp.add_argument("--frames", type=int, default=60, help="frames to render (default 60)")
+    bp.add_argument("--steps", type=int, default=500, help="world steps (default 500)")
+    bp.add_argument("--json", action="store_true", help="print only the JSON line")
+    bp.set_defaults(func=cmd_bench_sim)
+
+    p = sub.add_parser("sim", add_help=False,
+                       help="the simulated world + base on a pty + depth on a socket (see --help)")
+    p.add_argument("sim_args", nargs=argparse.REMAINDER)
+    p.set_defaults(func=cmd_sim)
+
+    p = sub.add_parser("record", help="write simulated depth as a pyrealsense2 .db3 recording")
+    _add_config_args(p)
+    p.add_argument("scenario", help="a shipped scenario name or a scenario YAML file")
+    p.add_argument("-o", "--output", type=Path, required=True, help="output file (.db3)")
+    p.add_argument("--frames", type=int, default=90, help="frames to record (default 90)")
+    p.add_argument("--fps", type=float, default=30.0, help="frame rate (default 30)")
+    p.add_argument("--twist", nargs=2, type=float, metavar=("V", "OMEGA"), default=(0.2, 0.0),
+                   help="the robot's body velocity while recording (default 0.2 0)")
+    p.add_argument("--seed", type=int, default=None, help="episode seed (default: the scenario's)")
+    p.add_argument("--noise", action="store_true", help="D435-like noise and edge dropout")
+    p.set_defaults(func=cmd_record)
 
     p = sub.add_parser("base-emulator", add_help=False,
                        help="the emulated Spark base on a pseudo-terminal (see --help)")

@@ -89,7 +89,8 @@ class LoopConfig:
     )
     startup_timeout_s: float = setting(
         5.0,
-        "how long start-up waits for the first base feedback before refusing to start",
+        "how long start-up waits for the first base feedback (and depth frame) before refusing"
+        " to start",
         "s",
         min=0.5,
         max=120.0,
@@ -138,6 +139,43 @@ class BaseConfig:
 
 
 @dataclass(frozen=True)
+class DepthConfig:
+    source: str = setting(
+        "none",
+        "where depth comes from: none, d435 (the live camera) or sim (the depth link of"
+        " `safemove sim`)",
+        choices=("none", "d435", "sim"),
+    )
+    max_age_s: float = setting(
+        0.25, "depth older than this puts the loop in DEGRADED (brake to a stop)", "s",
+        min=0.02, max=5.0,
+    )
+    sim_socket: str = setting("", "Unix socket of `safemove sim`'s depth link (source: sim)")
+    serial: str = setting("", "D435 serial number to open; empty = the only one connected")
+    width: int = setting(848, "D435 depth width", "px", choices=(424, 480, 640, 848, 1280))
+    height: int = setting(480, "D435 depth height", "px", choices=(240, 270, 360, 480, 720))
+    fps: int = setting(30, "D435 depth frame rate", "Hz", choices=(6, 15, 30, 60, 90))
+    decimation: int = setting(
+        1, "D435 decimation filter magnitude (1 = off); first in the SDK's filter order",
+        choices=(1, 2, 3, 4),
+    )
+    spatial_filter: bool = setting(
+        False, "D435 spatial filter (run in disparity space, as the SDK recommends)"
+    )
+    temporal_filter: bool = setting(False, "D435 temporal filter (smears moving people)")
+    hole_filling: bool = setting(False, "D435 hole filling (invents depth: off for safety)")
+    frame_timeout_s: float = setting(
+        1.0, "a D435 frame this late counts as a stall", "s", min=0.1, max=10.0
+    )
+    restart_after_stalls: int = setting(
+        3, "stalls in a row before the D435 pipeline is restarted", min=1, max=100
+    )
+    reset_after_restarts: int = setting(
+        2, "pipeline restarts in a row before a hardware reset of the D435", min=1, max=100
+    )
+
+
+@dataclass(frozen=True)
 class LimitsConfig:
     v_max: float = setting(0.3, "maximum forward speed", "m/s", min=0.0, max=0.5)
     v_min: float = setting(
@@ -169,6 +207,7 @@ class Config:
     )
     loop: LoopConfig = section(LoopConfig, "control loop timing and health")
     base: BaseConfig = section(BaseConfig, "Spark base serial link")
+    depth: DepthConfig = section(DepthConfig, "depth camera (RealSense D435) or its simulated stand-in")
     limits: LimitsConfig = section(LimitsConfig, "velocity and acceleration limits, applied last")
 
 

@@ -22,7 +22,7 @@ from runtime.limits import apply_limits
 from runtime.odometry import advance
 from runtime.sdnotify import SystemdNotifier
 from runtime.timing import RateKeeper, RingStats
-from runtime.types import STOP, Odometry, Twist, WheelIncrement
+from runtime.types import STOP, DepthFrame, Odometry, Twist, WheelIncrement
 
 log = logging.getLogger("safemove.loop")
 
@@ -46,6 +46,31 @@ class BaseLink(Protocol):
     def set_command(self, twist: Twist, now: float) -> None: ...
 
 
+class DepthInput(Protocol):
+    """What the loop needs from a depth source (drivers.depth_source.DepthSource)."""
+
+    def poll(self) -> DepthFrame | None: ...
+
+
+@dataclass
+class DepthStats:
+    """Every depth frame the loop received: count, frame-number gaps, the latest frame's age."""
+
+    frames: int = 0
+    gaps: int = 0
+    missing: int = 0
+    last_frame_number: int | None = None
+    last_t: float | None = None
+
+    def take(self, frame: DepthFrame) -> None:
+        if self.last_frame_number is not None and frame.frame_number != self.last_frame_number + 1:
+            self.gaps += 1
+            self.missing += max(0, frame.frame_number - self.last_frame_number - 1)
+        self.frames += 1
+        self.last_frame_number = frame.frame_number
+        self.last_t = frame.t
+
+
 class Job(Protocol):
     """What the loop runs: picks the target twist each RUNNING cycle."""
 
@@ -62,7 +87,7 @@ class Job(Protocol):
     def summary(self) -> dict[str, Any]: ...
 
 
-STAGES = ("base_read", "odometry", "job", "limits", "base_write", "cycle", "gc")
+STAGES = ("base_read", "depth_read", "odometry", "job", "limits", "base_write", "cycle", "gc")
 GC_FULL_EVERY = 600  # cycles between full collections (30 s at 20 Hz)
 
 
@@ -79,6 +104,7 @@ class LoopReport:
     nonfinite_commands: int
     odometry: Odometry
     timings: RingStats
+    depth: DepthStats | None = None
     transitions: list[tuple[float, str, str]] = field(default_factory=list)
 
     def as_dict(self) -> dict[str, Any]:
@@ -98,6 +124,10 @@ class LoopReport:
             "cycle_ms": self.timings.summary("cycle"),
             "period_jitter_ms": self.timings.summary("period_jitter"),
             "stage_ms": {s: self.timings.summary(s) for s in STAGES if s != "cycle"},
+            "depth": None if self.depth is None else {
+                "frames": self.depth.frames, "gaps": self.depth.gaps,
+                "missing": self.depth.missing, "last_frame_number": self.depth.last_frame_number,
+            },
             "transitions": [{"t": t, "from": a, "to": b} for t, a, b in self.transitions],
         }
 
@@ -114,8 +144,12 @@ class ControlLoop:
         notifier: SystemdNotifier,
         clock: Callable[[], float] = time.monotonic,
         max_cycles: int | None = None,
+        depth: DepthInput | None = None,
     ) -> None:
         self._cfg = config
+        self._depth = depth
+        self.depth_stats = DepthStats() if depth is not None else None
+        self.latest_depth: DepthFrame | None = None
         self._axle = calibration.odometry.axle_length_m
         self._link = link
         self._job = job
@@ -147,21 +181,38 @@ class ControlLoop:
         self.state = state
         self._notifier.status(f"{state.value}: {why}")
 
-    def _wait_for_feedback(self, period: float) -> bool:
-        """INIT: keep the base stopped until its first feedback; False if stopped meanwhile."""
-        deadline = self._clock() + self._cfg.loop.startup_timeout_s
-        while self._link.last_feedback_time is None:
+    def _wait_for_inputs(self, period: float) -> bool:
+        """INIT: keep the base stopped until base feedback (and depth, if configured) arrive;
+        False if stopped meanwhile."""
+        timeout = self._cfg.loop.startup_timeout_s
+        deadline = self._clock() + timeout
+        while self._link.last_feedback_time is None or (
+            self._depth is not None and self.latest_depth is None
+        ):
             now = self._clock()
+            self._drain_depth()
             if now > deadline:
+                if self._link.last_feedback_time is None:
+                    raise DeviceError(
+                        f"base device {self._cfg.base.port}: no feedback within {timeout:g} s"
+                        " (sent the vendor and the well-formed query); is the base powered on"
+                        " and is this its port?"
+                    )
                 raise DeviceError(
-                    f"base device {self._cfg.base.port}: no feedback within "
-                    f"{self._cfg.loop.startup_timeout_s:g} s (sent the vendor and the well-formed "
-                    "query); is the base powered on and is this its port?"
+                    f"depth source '{self._cfg.depth.source}': no frame within {timeout:g} s"
                 )
             self._link.set_command(STOP, now)
             if self._stop.wait(period):
                 return False
         return True
+
+    def _drain_depth(self) -> None:
+        """Take every frame that arrived; the newest is what the stages see."""
+        if self._depth is None or self.depth_stats is None:
+            return
+        while (frame := self._depth.poll()) is not None:
+            self.depth_stats.take(frame)
+            self.latest_depth = frame
 
     def run(self) -> LoopReport:
         """Run to the end. Exceptions inside a cycle become FAULT (exit 1) with the stop sent by
@@ -171,7 +222,7 @@ class ControlLoop:
         exit_code, reason = 0, ""
         self._notifier.status("INIT: waiting for base feedback")
         try:
-            if self._wait_for_feedback(period):
+            if self._wait_for_inputs(period):
                 self._run_cycles(period, counters)
             if self._job.finished:
                 reason = "job finished"
@@ -198,6 +249,7 @@ class ControlLoop:
             nonfinite_commands=counters["nonfinite"],
             odometry=self.odometry,
             timings=self.timings,
+            depth=self.depth_stats,
             transitions=self._transitions,
         )
 
@@ -225,6 +277,10 @@ class ControlLoop:
             increments = self._link.poll()
             t1 = clock()
             rec(ch["base_read"], t1 - t0)
+            self._drain_depth()
+            t_depth = clock()
+            rec(ch["depth_read"], t_depth - t1)
+            t1 = t_depth
             for inc in increments:
                 odom = advance(odom, inc, self._axle)
                 hazard = inc.hazard if cfg.loop.stop_on_cliff else None  # the latest frame decides
@@ -284,6 +340,10 @@ class ControlLoop:
         age = now - last if last is not None else float("inf")
         if age > self._cfg.loop.feedback_max_age_s:
             return f"base feedback stale ({age * 1000:.0f} ms old)"
+        if self._depth is not None:
+            last_depth = self.latest_depth.t if self.latest_depth is not None else -float("inf")
+            if now - last_depth > self._cfg.depth.max_age_s:
+                return f"depth stale ({(now - last_depth) * 1000:.0f} ms old)"
         return None
 
     def _log_stats(self, counters: dict[str, int], rate: RateKeeper) -> None:

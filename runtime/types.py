@@ -6,6 +6,8 @@ import enum
 import math
 from dataclasses import dataclass
 
+import numpy as np
+
 
 @dataclass(frozen=True, slots=True)
 class Twist:
@@ -97,3 +99,30 @@ class Odometry:
     v: float = 0.0
     omega: float = 0.0
     distance: float = 0.0
+
+
+@dataclass(frozen=True)
+class DepthIntrinsics:
+    """Pinhole intrinsics of a depth stream (D435 depth has zero distortion)."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    depth_unit_m: float = 0.001
+
+
+@dataclass
+class DepthFrame:
+    """One depth image, owned by us (copied out of any SDK buffer)."""
+
+    depth: np.ndarray  # uint16, shape (height, width), Z16 in intrinsics.depth_unit_m
+    t: float  # seconds (host monotonic; in playback the recorded timestamps)
+    frame_number: int
+    intrinsics: DepthIntrinsics
+
+    def depth_m(self) -> np.ndarray:
+        """Depth in metres as float32 (0 stays 0 = invalid)."""
+        return self.depth.astype(np.float32) * np.float32(self.intrinsics.depth_unit_m)

@@ -19,6 +19,7 @@ import random
 import selectors
 import signal
 import sys
+import threading
 import time
 import tty
 from collections.abc import Callable
@@ -54,7 +55,11 @@ class PtyBaseEmulator:
         link: Path | None = None,
         out: TextIO | None = None,
         seed: int = 0,
+        on_tick: Callable[[float], None] | None = None,
+        extra_ops: dict[str, Callable[[dict[str, Any], float], None]] | None = None,
     ) -> None:
+        """`on_tick(now)` runs after each physics step (the simulator moves its world there);
+        `extra_ops` adds control ops next to the emulator's own."""
         if not rate_hz > 0:
             raise ValueError(f"rate_hz must be > 0, got {rate_hz}")
         self.sim = sim
@@ -85,7 +90,10 @@ class PtyBaseEmulator:
             "glitch": self._op_glitch,
             "reopen": self._op_reopen,
             "quit": self._op_quit,
+            **(extra_ops or {}),
         }
+        self._on_tick = on_tick
+        self._emit_lock = threading.Lock()
 
     # --- main loop -------------------------------------------------------------------------
 
@@ -100,7 +108,7 @@ class PtyBaseEmulator:
             self._selector.register(wake_r, selectors.EVENT_READ, self._drain_wakeup)
             self._selector.register(control_fd, selectors.EVENT_READ, self._on_control)
             self._open_pty()
-            self._emit({"event": "ready", "pty": self.pty_path, "link": _str(self.link),
+            self.emit({"event": "ready", "pty": self.pty_path, "link": _str(self.link),
                         "pid": os.getpid()})
             self._loop()
         finally:
@@ -141,6 +149,8 @@ class PtyBaseEmulator:
             self._exit_code = 1
             return
         self._advance(now)
+        if self._on_tick is not None:
+            self._on_tick(now)
         if self._master is None:
             return
         chunk, self._noise = self._noise, b""
@@ -186,7 +196,7 @@ class PtyBaseEmulator:
     def _reopen(self, now: float) -> None:
         self._reopen_at = None
         self._open_pty()
-        self._emit({"event": "reopened", "pty": self.pty_path, "link": _str(self.link), "t": now})
+        self.emit({"event": "reopened", "pty": self.pty_path, "link": _str(self.link), "t": now})
 
     def _update_link(self) -> None:
         """Point the stable link at the current pty atomically, as udev does for /dev/sparkBase."""
@@ -275,14 +285,14 @@ class PtyBaseEmulator:
                 raise ControlError(f"unknown op {msg['op']!r}; known: {sorted(self._ops)}")
             op(msg, now)
         except (ControlError, json.JSONDecodeError) as exc:
-            self._emit({"event": "error", "message": str(exc), "line": line.strip()})
+            self.emit({"event": "error", "message": str(exc), "line": line.strip()})
 
     def _op_truth(self, _msg: dict[str, Any], now: float) -> None:
         self._advance(now)
-        self._emit({"event": "truth", **self.sim.truth()})
+        self.emit({"event": "truth", **self.sim.truth()})
 
     def _op_stats(self, _msg: dict[str, Any], now: float) -> None:
-        self._emit({
+        self.emit({
             "event": "stats",
             "t": now,
             "frames_sent": self.frames_sent,
@@ -312,26 +322,28 @@ class PtyBaseEmulator:
         if self._master is None:
             raise ControlError("reopen: the port is already closed")
         self._close_pty()
-        self._emit({"event": "closed", "t": now})
+        self.emit({"event": "closed", "t": now})
         self._reopen_at = now + float(down_s)
 
     def _op_quit(self, _msg: dict[str, Any], _now: float) -> None:
         self._exit_code = 0
 
     def _ack(self, msg: dict[str, Any], now: float) -> None:
-        self._emit({"event": "ack", "op": msg["op"], "t": now})
+        self.emit({"event": "ack", "op": msg["op"], "t": now})
 
     # --- output ----------------------------------------------------------------------------
 
     def _emit_all(self, events: list[Event]) -> None:
         for event in events:
-            self._emit(event)
+            self.emit(event)
 
-    def _emit(self, event: Event) -> None:
-        """One JSON line, flushed at once: tests read events while the emulator runs."""
+    def emit(self, event: Event) -> None:
+        """One JSON line, flushed at once: tests read events while the emulator runs. Safe from
+        other threads (the simulator's renderer reports from its own)."""
         try:
-            self._out.write(json.dumps(event) + "\n")
-            self._out.flush()
+            with self._emit_lock:
+                self._out.write(json.dumps(event) + "\n")
+                self._out.flush()
         except BrokenPipeError:  # whoever read our events is gone: stop, don't run orphaned
             print("base emulator: stdout closed, exiting", file=sys.stderr)
             with contextlib.suppress(OSError, ValueError):

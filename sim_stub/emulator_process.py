@@ -19,13 +19,24 @@ from typing import Any
 
 
 class EmulatorProcess:
-    """`with EmulatorProcess(["--watchdog-s", "0.5"]) as emu: ... emu.link ...`"""
+    """`with EmulatorProcess(["--watchdog-s", "0.5"]) as emu: ... emu.link ...`
 
-    def __init__(self, args: list[str] | None = None, startup_timeout_s: float = 10.0) -> None:
+    `module` picks the program: the bare base emulator, or `sim_stub.sim_server` (the whole
+    simulated robot, whose depth socket is `emu.depth_socket`). Both speak the same JSON lines.
+    """
+
+    def __init__(
+        self,
+        args: list[str] | None = None,
+        startup_timeout_s: float = 10.0,
+        module: str = "sim_stub.base_emulator",
+    ) -> None:
         self._tmp = tempfile.TemporaryDirectory(prefix="safemove-emu-")
-        self.link = str(Path(self._tmp.name) / "sparkBase")
+        self.dir = Path(self._tmp.name)
+        self.link = str(self.dir / "sparkBase")
+        self.depth_socket = str(self.dir / "depth.sock")
         self._proc = subprocess.Popen(
-            [sys.executable, "-m", "sim_stub.base_emulator", "--link", self.link, *(args or [])],
+            [sys.executable, "-m", module, "--link", self.link, *(args or [])],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             stderr=None,

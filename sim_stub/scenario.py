@@ -36,16 +36,12 @@ class Rect:
         )
 
 
-def _rect(default: tuple[float, float, float, float]) -> Any:
-    x0, x1, y0, y1 = default
-    return dataclasses.field(
-        default_factory=lambda: Rect(x0, x1, y0, y1), metadata={"doc": "rectangle x/y bounds"}
-    )
-
-
 @dataclass(frozen=True)
 class RobotStart:
-    area: Rect = _rect((-0.5, 0.5, -0.5, 0.5))
+    area: Rect = dataclasses.field(
+        default_factory=lambda: Rect(-0.5, 0.5, -0.5, 0.5),
+        metadata={"doc": "the start position is drawn uniformly in this rectangle"},
+    )
     heading_deg: float = setting(0.0, "start heading (0 = +x)", "deg", min=-180.0, max=180.0)
     heading_jitter_deg: float = setting(
         0.0, "start heading drawn uniformly in heading ± this", "deg", min=0.0, max=180.0
@@ -69,6 +65,13 @@ class CrowdSpec:
     )
     neighbour_distance_m: float = setting(
         10.0, "agents farther than this are ignored", "m", min=0.5, max=100.0
+    )
+    safety_margin_m: float = setting(
+        0.02,
+        "extra radius the agents plan with (collisions are judged with the true radius)",
+        "m",
+        min=0.0,
+        max=0.5,
     )
     max_neighbours: int = setting(10, "at most this many nearest agents considered", min=1)
     goal_min_distance_m: float = setting(
@@ -114,7 +117,9 @@ class Scenario:
     goal_tolerance_m: float = setting(
         0.2, "the robot succeeds within this distance of its goal", "m", min=0.01, max=5.0
     )
-    area: Rect = _rect((-5.0, 5.0, -5.0, 5.0))
+    area: Rect = dataclasses.field(
+        default_factory=Rect, metadata={"doc": "where the crowd spawns and draws its goals"}
+    )
     robot: RobotStart = dataclasses.field(
         default_factory=RobotStart, metadata={"doc": "robot start area and heading"}
     )
@@ -153,7 +158,9 @@ def _check_rect(rect: Rect, source: str, key: str) -> None:
 def parse_scenario(data: Any, source: str) -> Scenario:
     """Validate parsed YAML into a Scenario; every problem is one ConfigError line."""
     if not isinstance(data, dict):
-        raise ConfigError(f"{source}: expected a mapping of scenario keys, got {type(data).__name__}")
+        raise ConfigError(
+            f"{source}: expected a mapping of scenario keys, got {type(data).__name__}"
+        )
     rest = {k: v for k, v in data.items() if k not in _LIST_KEYS and k != "source"}
     if "source" in data:
         raise ConfigError(f"{source}: unknown key 'source'")
@@ -168,7 +175,9 @@ def parse_scenario(data: Any, source: str) -> Scenario:
 
     raw_goals = data.get("goals")
     if not isinstance(raw_goals, list) or not raw_goals:
-        raise _error(source, "goals", f"expected a non-empty list of [x, y] points, got {raw_goals!r}")
+        raise _error(
+            source, "goals", f"expected a non-empty list of [x, y] points, got {raw_goals!r}"
+        )
     goals = tuple(_point(g, source, f"goals[{i}]") for i, g in enumerate(raw_goals))
     for i, (gx, gy) in enumerate(goals):
         if not scenario.area.contains(gx, gy):

@@ -150,7 +150,9 @@ class World:
         theta = math.radians(spec.heading_deg) + rng.uniform(-jitter, jitter)
         return RobotState(float(p[0]), float(p[1]), math.atan2(math.sin(theta), math.cos(theta)))
 
-    def _free_point(self, rng: np.random.Generator, radius: float, taken: list, gap: float) -> np.ndarray:
+    def _free_point(
+        self, rng: np.random.Generator, radius: float, taken: list, gap: float
+    ) -> np.ndarray:
         for _ in range(_SPAWN_TRIES):
             p = self._uniform(rng, self.scenario.area, radius)
             if self.clearance(p)[0] < radius + 0.1:
@@ -177,6 +179,7 @@ class World:
             obstacle_time_horizon=spec.obstacle_time_horizon_s,
             neighbour_distance=spec.neighbour_distance_m,
             max_neighbours=spec.max_neighbours,
+            safety_margin=spec.safety_margin_m,
         )
         return Crowd(
             positions,
@@ -224,6 +227,23 @@ class World:
         self.outcome = self.judge()
         return self.outcome
 
+    def follow_robot(
+        self, dt: float, x: float, y: float, theta: float, v: float, omega: float
+    ) -> Outcome:
+        """Advance the crowd by dt with the robot where an outside model (the emulated base's
+        kinematics) put it. Unlike `step`, the world keeps moving after the first outcome, which
+        stays latched: the runtime driving the simulated robot does not stop existing."""
+        r = self.robot
+        r.x, r.y, r.theta, r.v, r.omega = x, y, theta, v, omega
+        if dt > 0.0:
+            others = [self.robot_body()] if self.scenario.crowd.reactive else []
+            self.crowd.step(dt, self.shapes, others)
+            self.t += dt
+        now = self.judge()
+        if not self.outcome.done:
+            self.outcome = now
+        return self.outcome
+
     def _move_robot(self, dt: float, v_cmd: float, omega_cmd: float) -> None:
         lim, r = self.limits, self.robot
         r.v = _approach(r.v, v_cmd, lim.accel_max, lim.decel_max, dt)
@@ -243,9 +263,7 @@ class World:
         p = np.array([self.robot.x, self.robot.y])
         at_fault = abs(self.robot.v) > MOVING_SPEED_M_S
         if len(self.crowd):
-            gaps = (
-                np.hypot(*(self.crowd.positions - p).T) - self.crowd.radii - self.robot_radius
-            )
+            gaps = np.hypot(*(self.crowd.positions - p).T) - self.crowd.radii - self.robot_radius
             k = int(np.argmin(gaps))
             self.min_separation = min(self.min_separation, float(gaps[k]))
             if gaps[k] < 0.0:

@@ -74,3 +74,14 @@ def safemove() -> Iterator[type[SafemoveProcess]]:
     yield Tracked
     for p in started:
         p.kill()
+
+
+@pytest.fixture
+def sim(request: pytest.FixtureRequest) -> Iterator[EmulatorProcess]:
+    """`safemove sim` (world + base pty + depth socket); args via indirect parametrize."""
+    args = getattr(request, "param", None) or ["paper_a"]
+    proc = EmulatorProcess(args, module="sim_stub.sim_server")
+    try:
+        yield proc
+    finally:
+        proc.close()
