@@ -51,9 +51,10 @@ class _Client:
 class DepthServer:
     """Unix stream socket that sends every frame to every connected client."""
 
-    def __init__(self, path: Path, emit: Any) -> None:
+    def __init__(self, path: Path, emit: Any, log_frames: bool = False) -> None:
         self.path = path
         self._emit = emit
+        self._log_frames = log_frames
         with contextlib.suppress(FileNotFoundError):
             path.unlink()
         self._listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
@@ -83,6 +84,10 @@ class DepthServer:
                 continue
             client.frames += 1
             client.digest = frame_digest(client.digest, frame_number, crc)
+            if self._log_frames:  # lets a test compare any prefix of the stream, not just all
+                self._emit({"event": "depth_sent", "client": client.sock.fileno(),
+                            "frames": client.frames, "frame_number": frame_number,
+                            "digest": client.digest})
 
     def _drop(self, client: _Client, why: str) -> None:
         self._clients.remove(client)
@@ -198,6 +203,8 @@ def build_arg_parser() -> argparse.ArgumentParser:
                    help="Unix socket for depth (default: depth.sock beside --link)")
     p.add_argument("--fps", type=float, default=15.0, help="depth frames per second (default 15)")
     p.add_argument("--noise", action="store_true", help="D435-like range noise and edge dropout")
+    p.add_argument("--log-depth", action="store_true",
+                   help="an event per depth frame sent, with the running digest (for tests)")
     p.add_argument("--seed", type=int, default=None, help="episode seed (default: the scenario's)")
     p.add_argument("--goal", type=int, default=None, help="goal index (default: drawn from seed)")
     p.add_argument("--watchdog-s", type=float, default=0.5, help="the base's own command watchdog")
@@ -226,7 +233,7 @@ def main(argv: list[str] | None = None) -> int:
                              seed=world.seed)
     emulator_box: list[PtyBaseEmulator] = []
     try:
-        server = DepthServer(args.depth_socket, lambda e: emulator_box[0].emit(e))
+        server = DepthServer(args.depth_socket, lambda e: emulator_box[0].emit(e), args.log_depth)
     except OSError as exc:
         print(f"safemove sim: error: depth socket {args.depth_socket}: {exc.strerror or exc}",
               file=sys.stderr)
