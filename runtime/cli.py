@@ -59,6 +59,15 @@ def _drive_segments(args: argparse.Namespace) -> list:
     return [Segment(Twist(v, omega), args.duration)]
 
 
+def _print_bench(result: dict[str, Any], json_only: bool) -> int:
+    """Figures one per line (unless --json), then the whole result as the last line."""
+    if not json_only:
+        for key, value in result.items():
+            print(f"{key}: {value}")
+    _print_json(result)
+    return 0
+
+
 def _finish(report_dict: dict[str, Any], exit_code: int) -> int:
     _print_json(report_dict)
     return exit_code
@@ -111,23 +120,13 @@ def cmd_demo(args: argparse.Namespace) -> int:
 def cmd_bench_loop(args: argparse.Namespace) -> int:
     from runtime.bench import bench_loop
 
-    result = bench_loop(args.cycles, args.config, args.overrides)
-    if not args.json:
-        for key, value in result.items():
-            print(f"{key}: {value}")
-    _print_json(result)
-    return 0
+    return _print_bench(bench_loop(args.cycles, args.config, args.overrides), args.json)
 
 
 def cmd_bench_sim(args: argparse.Namespace) -> int:
     from runtime.bench import bench_sim
 
-    result = bench_sim(args.frames, args.steps)
-    if not args.json:
-        for key, value in result.items():
-            print(f"{key}: {value}")
-    _print_json(result)
-    return 0
+    return _print_bench(bench_sim(args.frames, args.steps), args.json)
 
 
 def cmd_sim(args: argparse.Namespace) -> int:

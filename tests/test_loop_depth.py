@@ -6,12 +6,13 @@ import threading
 import time
 
 import numpy as np
+from doubles import FreshFeedbackLink
 
 from runtime.config import Calibration, Config
 from runtime.drive import HoldJob
 from runtime.loop import ControlLoop, DepthStats
 from runtime.sdnotify import SystemdNotifier
-from runtime.types import DepthFrame, DepthIntrinsics, Twist
+from runtime.types import DepthFrame, DepthIntrinsics
 
 K = DepthIntrinsics(4, 3, 2.0, 2.0, 2.0, 1.5)
 
@@ -25,23 +26,6 @@ def test_depth_stats_count_gaps_and_missing_frames():
     for n in (5, 6, 7, 10, 11, 13):
         stats.take(frame(n, 0.0))
     assert (stats.frames, stats.gaps, stats.missing, stats.last_frame_number) == (6, 2, 3, 13)
-
-
-class Link:
-    """Unit-test double: base feedback always fresh; commands recorded."""
-
-    def __init__(self) -> None:
-        self.commands: list[Twist] = []
-
-    @property
-    def last_feedback_time(self) -> float:
-        return time.monotonic()
-
-    def poll(self) -> list:
-        return []
-
-    def set_command(self, twist: Twist, now: float) -> None:
-        self.commands.append(twist)
 
 
 class SwitchableDepth:
@@ -64,7 +48,7 @@ class SwitchableDepth:
 
 def test_stale_depth_degrades_the_loop_and_fresh_depth_recovers_it():
     depth = SwitchableDepth()
-    loop = ControlLoop(Config(), Calibration(), Link(), HoldJob(), SystemdNotifier(None),
+    loop = ControlLoop(Config(), Calibration(), FreshFeedbackLink(), HoldJob(), SystemdNotifier(None),
                        depth=depth)
     reports = []
     thread = threading.Thread(target=lambda: reports.append(loop.run()), daemon=True)

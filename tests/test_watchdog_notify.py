@@ -8,6 +8,7 @@ import threading
 import time
 
 import pytest
+from doubles import FreshFeedbackLink
 
 from runtime.config import Calibration, Config
 from runtime.loop import ControlLoop
@@ -56,24 +57,6 @@ class NotifyListener:
         self.sock.close()
 
 
-class FreshFeedbackLink:
-    """Unit-test double of the base link: feedback always fresh, commands recorded."""
-
-    def __init__(self, clock) -> None:
-        self._clock = clock
-        self.commands: list[Twist] = []
-
-    @property
-    def last_feedback_time(self) -> float:
-        return self._clock()
-
-    def poll(self) -> list:
-        return []
-
-    def set_command(self, twist: Twist, now: float) -> None:
-        self.commands.append(twist)
-
-
 class StallableJob:
     """Drives forward; blocks inside step() while `stall` is set, like a hung stage."""
 
@@ -102,7 +85,7 @@ def test_watchdog_stops_while_a_cycle_stalls_and_resumes_after(tmp_path):
         {"NOTIFY_SOCKET": listener.path, "WATCHDOG_USEC": "100000"}  # kick every 50 ms
     )
     job = StallableJob()
-    loop = ControlLoop(Config(), Calibration(), FreshFeedbackLink(time.monotonic), job, notifier)
+    loop = ControlLoop(Config(), Calibration(), FreshFeedbackLink(), job, notifier)
     thread = threading.Thread(target=loop.run, daemon=True)
     thread.start()
     try:
