@@ -94,26 +94,32 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    """The main job for now: the runtime driving the emulated Spark base through a square."""
+    """The main job for now: the runtime driving the simulated robot (world, depth, base)."""
     from runtime.app import run_job
     from runtime.drive import DriveJob, Segment
     from runtime.types import Twist
     from sim_stub.emulator_process import EmulatorProcess
 
     side = [Segment(Twist(0.2, 0.0), 2.5), Segment(Twist(0.0, 0.8), 1.9635)]  # 0.5 m, then 90°
-    with EmulatorProcess() as emu:
-        loaded = load_config(args.config, [*args.overrides, f"base.port={emu.link}"])
+    with EmulatorProcess([args.scenario], module="sim_stub.sim_server") as sim:
+        loaded = load_config(args.config, [
+            *args.overrides, f"base.port={sim.link}", "depth.source=sim",
+            f"depth.sim_socket={sim.depth_socket}",
+        ])
         job = DriveJob(side * 4, 1.0 / loaded.config.loop.control_hz)
         report, link_stats = run_job(loaded, job)
-        truth = emu.truth()
+        world = sim.request("world", "world")
+        truth = sim.truth()
+    o = report.odometry
     print(
-        f"drove an open-loop 0.5 m square on the emulated base: odometry ends at "
-        f"({report.odometry.x:+.3f}, {report.odometry.y:+.3f}) m, heading "
-        f"{report.odometry.theta:+.3f} rad; ground truth ({truth['x']:+.3f}, {truth['y']:+.3f}) m; "
-        f"{report.cycles} cycles, {report.misses} missed deadlines",
+        f"drove an open-loop 0.5 m square in scenario {args.scenario} (teleoperation: no planner"
+        f" yet): odometry ({o.x:+.3f}, {o.y:+.3f}) m vs base truth ({truth['x']:+.3f},"
+        f" {truth['y']:+.3f}) m; {report.depth.frames if report.depth else 0} depth frames,"
+        f" {report.cycles} cycles, {report.misses} missed deadlines; world says: {world['status']}",
         file=sys.stderr,
     )
-    return _finish({**report.as_dict(), "job": job.summary(), "link": link_stats, "truth": truth},
+    return _finish({**report.as_dict(), "job": job.summary(), "link": link_stats, "truth": truth,
+                    "world": {k: world[k] for k in ("status", "robot_pose", "min_separation")}},
                    report.exit_code)
 
 
@@ -185,8 +191,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--script", type=Path, help="YAML list of {v, omega, duration} segments")
     p.set_defaults(func=cmd_drive)
 
-    p = sub.add_parser("demo", help="the runtime driving the emulated base through a square")
+    p = sub.add_parser("demo", help="the runtime driving the simulated robot through a square")
     _add_config_args(p)
+    p.add_argument("--scenario", default="static_clutter",
+                   help="scenario to drive in (default static_clutter)")
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("config", help="inspect the configuration")

@@ -62,3 +62,13 @@ def test_absent_d435_refuses_to_start_with_a_clear_message(emulator, safemove):
     assert run.wait(timeout=30) == 2
     last = run.stderr.strip().splitlines()[-1]
     assert last.startswith("safemove: error: D435") and "Traceback" not in run.stderr
+
+
+def test_the_readme_main_command_runs(safemove):
+    run = safemove(["demo", "--set", "loop.stats_interval_s=0"])
+    assert run.wait(timeout=60) == 0, run.stderr[-3000:]
+    report = run.report()
+    assert report["state"] == "STOPPED" and report["reason"] == "job finished"
+    assert report["depth"]["frames"] > 100 and report["depth"]["gaps"] == 0
+    assert report["odometry"]["x"] == pytest.approx(report["truth"]["x"], abs=0.01)
+    assert report["odometry"]["y"] == pytest.approx(report["truth"]["y"], abs=0.01)
