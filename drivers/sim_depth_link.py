@@ -36,18 +36,19 @@ class LinkFormatError(ValueError):
     """Bytes on the depth link that are not a frame."""
 
 
-def encode_frame(frame: DepthFrame) -> bytes:
-    """Header + payload for one frame."""
+def encode_frame(frame: DepthFrame) -> tuple[bytes, int]:
+    """Header + payload for one frame, and the payload's crc32 (for the sender's digest)."""
     k = frame.intrinsics
     depth = np.ascontiguousarray(frame.depth, dtype="<u2")
     if depth.shape != (k.height, k.width):
         raise ValueError(f"depth shape {depth.shape} does not match intrinsics {k.width}x{k.height}")
     payload = depth.tobytes()
+    crc = zlib.crc32(payload)
     header = HEADER.pack(
         MAGIC, HEADER.size, frame.frame_number, frame.t, k.width, k.height,
-        k.fx, k.fy, k.cx, k.cy, k.depth_unit_m, 0.0, len(payload), zlib.crc32(payload),
+        k.fx, k.fy, k.cx, k.cy, k.depth_unit_m, 0.0, len(payload), crc,
     )
-    return header + payload
+    return header + payload, crc
 
 
 def decode_header(raw: bytes) -> tuple[int, float, DepthIntrinsics, int, int]:

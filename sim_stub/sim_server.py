@@ -13,12 +13,10 @@ import argparse
 import contextlib
 import logging
 import math
-import os
 import socket
 import sys
 import threading
 import time
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -176,8 +174,8 @@ class SimWorldLink:
                 depth = self._renderer.render(tuple(snap.robot_pose), scene_from(self.world, snap),
                                               noise=self._noise)
                 frame = DepthFrame(depth, stamp, self.frames, self._renderer.intrinsics)
-                data = encode_frame(frame)
-                self._server.send(data, frame.frame_number, zlib.crc32(memoryview(data)[-depth.nbytes:]))
+                data, crc = encode_frame(frame)
+                self._server.send(data, frame.frame_number, crc)
                 self.frames += 1
             deadline += self._period
             now = time.monotonic()
@@ -256,8 +254,6 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         link.stop()
         server.close()
-        with contextlib.suppress(OSError):
-            os.close(0)
 
 
 if __name__ == "__main__":
