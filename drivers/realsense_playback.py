@@ -5,18 +5,24 @@ playback device is put into non-real-time mode *before* the pipeline starts (via
 `config.resolve`): set after `start()`, the first frames are already read in real time and the
 pipeline's one-frame queue drops them. In non-real-time mode the reader waits for us, so no
 frame is skipped however slowly we poll. The recorded timestamps (ms) are the clock (s).
-End of file is `at_end` (playback status stopped and nothing left), never a stall.
+End of file is `at_end` (playback status stopped and nothing left), never a stall. Right after
+`start()` the status can still read `stopped` before playback begins (seen in 4 of 30 starts), so
+the end only counts once playback has been seen running, or after a grace period for a
+recording with no frames at all.
 """
 
 from __future__ import annotations
 
 import os
+import time
 
 import numpy as np
 import pyrealsense2 as rs
 
 from drivers.depth_source import DepthFrame, DepthIntrinsics
 from runtime.errors import UserError
+
+START_GRACE_S = 3.0  # a recording that has not started playing by then has no frames
 
 
 class PlaybackDepthSource:
@@ -29,6 +35,8 @@ class PlaybackDepthSource:
         self._pipe: rs.pipeline | None = None
         self._playback = None
         self._at_end = False
+        self._seen_playing = False
+        self._started_at = 0.0
         self.frames_delivered = 0
 
     def start(self) -> None:
@@ -58,6 +66,8 @@ class PlaybackDepthSource:
             depth_unit_m=float(scale),
         )
         self._pipe, self._playback, self._at_end = pipe, playback, False
+        self._seen_playing = False
+        self._started_at = time.monotonic()
 
     def _try_frame(self, timeout_ms: int) -> DepthFrame | None:
         ok, frames = self._pipe.try_wait_for_frames(timeout_ms)
@@ -78,8 +88,14 @@ class PlaybackDepthSource:
             return None
         frame = self._try_frame(self.poll_timeout_ms)
         if frame is not None:
+            self._seen_playing = True
             return frame
-        if self._playback.current_status() == rs.playback_status.stopped:
+        status = self._playback.current_status()
+        if status == rs.playback_status.playing:
+            self._seen_playing = True
+        elif status == rs.playback_status.stopped and (
+            self._seen_playing or time.monotonic() - self._started_at > START_GRACE_S
+        ):
             # the reader has finished; take anything still in flight before calling it the end
             frame = self._try_frame(self.poll_timeout_ms)
             if frame is None:
