@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from runtime.odometry_ekf import OdometryFilterConfig
 from runtime.schema import (
     apply_override,
     build,
@@ -208,6 +209,9 @@ class Config:
     loop: LoopConfig = section(LoopConfig, "control loop timing and health")
     base: BaseConfig = section(BaseConfig, "Spark base serial link")
     depth: DepthConfig = section(DepthConfig, "depth camera (RealSense D435) or its simulated stand-in")
+    odometry: OdometryFilterConfig = section(
+        OdometryFilterConfig, "odometry EKF: wheel increments fused with the IMU gyro"
+    )
     limits: LimitsConfig = section(LimitsConfig, "velocity and acceleration limits, applied last")
 
 

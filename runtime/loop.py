@@ -19,7 +19,7 @@ from typing import Any, Protocol
 from runtime.config import Calibration, Config
 from runtime.errors import DeviceError
 from runtime.limits import apply_limits
-from runtime.odometry import advance
+from runtime.odometry_ekf import OdometryEKF
 from runtime.sdnotify import SystemdNotifier
 from runtime.timing import RateKeeper, RingStats
 from runtime.types import STOP, DepthFrame, Odometry, Twist, WheelIncrement
@@ -150,7 +150,7 @@ class ControlLoop:
         self._depth = depth
         self.depth_stats = DepthStats() if depth is not None else None
         self.latest_depth: DepthFrame | None = None
-        self._axle = calibration.odometry.axle_length_m
+        self._odom_filter = OdometryEKF(calibration.odometry.axle_length_m, config.odometry)
         self._link = link
         self._job = job
         self._notifier = notifier
@@ -282,7 +282,7 @@ class ControlLoop:
             rec(ch["depth_read"], t_depth - t1)
             t1 = t_depth
             for inc in increments:
-                odom = advance(odom, inc, self._axle)
+                odom = self._odom_filter.step(inc)
                 hazard = inc.hazard if cfg.loop.stop_on_cliff else None  # the latest frame decides
             self.odometry = odom
             t2 = clock()

@@ -24,12 +24,9 @@ import numpy as np
 
 from drivers.depth_source import D435_848x480, DepthIntrinsics
 from runtime.config import CameraMount
+from runtime.geometry import R_LINK_OPTICAL, rpy_matrix
 
 F32 = np.float32
-
-# camera_link <- optical: columns are the optical axes expressed in camera_link.
-R_LINK_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
-
 
 @dataclass(frozen=True)
 class Cylinder:
@@ -66,17 +63,6 @@ class Scene:
     cylinders: Sequence[Cylinder] = field(default_factory=list)
     boxes: Sequence[Box] = field(default_factory=list)
     floor: bool = True
-
-
-def rpy_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """ROS fixed-axis RPY: R = Rz(yaw) @ Ry(pitch) @ Rx(roll)."""
-    cr, sr = math.cos(roll), math.sin(roll)
-    cp, sp = math.cos(pitch), math.sin(pitch)
-    cy, sy = math.cos(yaw), math.sin(yaw)
-    rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
-    ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
-    rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
-    return rz @ ry @ rx
 
 
 def camera_pose(robot_pose: tuple[float, float, float], mount: CameraMount,
