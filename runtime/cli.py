@@ -135,6 +135,12 @@ def cmd_bench_sim(args: argparse.Namespace) -> int:
     return _print_bench(bench_sim(args.frames, args.steps), args.json)
 
 
+def cmd_bench_perception(args: argparse.Namespace) -> int:
+    from runtime.bench import bench_perception
+
+    return _print_bench(bench_perception(args.frames), args.json)
+
+
 def cmd_sim(args: argparse.Namespace) -> int:
     from sim_stub.sim_server import main as sim_main
 
@@ -216,6 +222,11 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--steps", type=int, default=500, help="world steps (default 500)")
     bp.add_argument("--json", action="store_true", help="print only the JSON line")
     bp.set_defaults(func=cmd_bench_sim)
+
+    bp = bsub.add_parser("perception", help="world-model stages per frame at 848x480")
+    bp.add_argument("--frames", type=int, default=100, help="frames to process (default 100)")
+    bp.add_argument("--json", action="store_true", help="print only the JSON line")
+    bp.set_defaults(func=cmd_bench_perception)
 
     p = sub.add_parser("sim", add_help=False,
                        help="the simulated world + base on a pty + depth on a socket (see --help)")

@@ -11,7 +11,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from runtime.calibration_schema import (
+    CALIBRATION_TITLE,
+    Calibration,
+    CameraMount,
+    OdometryCalibration,
+)
+from runtime.obstacle_memory import ObstacleMemoryConfig
 from runtime.odometry_ekf import OdometryFilterConfig
+from runtime.perception import PerceptionConfig
 from runtime.schema import (
     apply_override,
     build,
@@ -20,59 +28,17 @@ from runtime.schema import (
     section,
     setting,
 )
+from runtime.tracking import TrackerConfig
+
+__all__ = [
+    "CALIBRATION_TITLE", "Calibration", "CameraMount", "Config", "LoadedConfig",
+    "OdometryCalibration", "load_calibration", "load_config", "render_calibration",
+    "render_config",
+]
 
 PACKAGE_DIR = Path(__file__).resolve().parent
 DEFAULT_CONFIG_PATH = PACKAGE_DIR / "default_config.yaml"
 DEFAULT_CALIBRATION_PATH = PACKAGE_DIR.parent / "calibration" / "spark_default.yaml"
-
-
-# --- calibration (per robot) ---------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class CameraMount:
-    translation_m: tuple[float, float, float] = setting(
-        (0.094, 0.018, 0.643),
-        "D435 camera_link origin in base_link (x forward, y left, z up); vendor URDF default",
-        "m",
-        min=-2.0,
-        max=2.0,
-    )
-    rpy_deg: tuple[float, float, float] = setting(
-        (0.0, 0.0, 0.0),
-        "camera_link roll, pitch, yaw in base_link (pitch > 0 tilts the camera down)",
-        "deg",
-        min=-180.0,
-        max=180.0,
-    )
-
-
-@dataclass(frozen=True)
-class OdometryCalibration:
-    m_per_tick: float = setting(
-        0.00028885, "wheel travel per encoder tick", "m/tick", min=0.0, max=0.01, min_exclusive=True
-    )
-    axle_length_m: float = setting(
-        0.266, "distance between the wheel contact points (URDF says 0.262)", "m", min=0.1, max=1.0
-    )
-    left_encoder_offset: int = setting(
-        14,
-        "byte offset of the physically left wheel's encoder in feedback frames; check by commanding"
-        " omega > 0: the right wheel's count must rise faster and IMU yaw must increase",
-        choices=(10, 14),
-    )
-
-
-@dataclass(frozen=True)
-class Calibration:
-    camera: CameraMount = section(CameraMount, "camera extrinsics (camera_link in base_link)")
-    odometry: OdometryCalibration = section(OdometryCalibration, "wheel odometry constants")
-
-
-CALIBRATION_TITLE = (
-    "SafeMove per-robot calibration file.\n"
-    "Defaults are the NXROBO Spark vendor values; run `safemove calibrate` to measure your robot."
-)
 
 
 # --- runtime config ------------------------------------------------------------------------------
@@ -212,6 +178,13 @@ class Config:
     odometry: OdometryFilterConfig = section(
         OdometryFilterConfig, "odometry EKF: wheel increments fused with the IMU gyro"
     )
+    perception: PerceptionConfig = section(
+        PerceptionConfig, "depth → obstacle points and scan in base_link"
+    )
+    memory: ObstacleMemoryConfig = section(
+        ObstacleMemoryConfig, "obstacle memory in odom: what left the camera's view"
+    )
+    tracking: TrackerConfig = section(TrackerConfig, "clusters → tracked people with velocity")
     limits: LimitsConfig = section(LimitsConfig, "velocity and acceleration limits, applied last")
 
 

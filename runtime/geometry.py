@@ -23,3 +23,23 @@ def rpy_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
     ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
     rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
     return rz @ ry @ rx
+
+
+def base_to_odom(points: np.ndarray, pose: tuple[float, float, float]) -> np.ndarray:
+    """(N, 2) points from base_link into odom, for a robot at pose (x, y, θ) in odom."""
+    x, y, th = pose
+    c, s = math.cos(th), math.sin(th)
+    out = np.empty_like(points)
+    out[:, 0] = x + c * points[:, 0] - s * points[:, 1]
+    out[:, 1] = y + s * points[:, 0] + c * points[:, 1]
+    return out
+
+
+def thin_points(points: np.ndarray, cell_m: float) -> np.ndarray:
+    """One point per cell of a `cell_m` grid: a depth image stacks hundreds of points on each
+    bit of floor-plan, and clustering cost grows with points, not with obstacles."""
+    if len(points) == 0:
+        return points
+    keys = np.floor(points / cell_m).astype(np.int64)
+    _, first = np.unique(keys[:, 0] * 2_000_003 + keys[:, 1], return_index=True)
+    return points[first]

@@ -16,12 +16,18 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+import numpy as np
+
 from runtime.config import Calibration, Config
 from runtime.errors import DeviceError
+from runtime.geometry import base_to_odom, thin_points
 from runtime.limits import apply_limits
+from runtime.obstacle_memory import ObstacleMemory
 from runtime.odometry_ekf import OdometryEKF
+from runtime.perception import Perception
 from runtime.sdnotify import SystemdNotifier
 from runtime.timing import RateKeeper, RingStats
+from runtime.tracking import Track, Tracker
 from runtime.types import STOP, DepthFrame, Odometry, Twist, WheelIncrement
 
 log = logging.getLogger("safemove.loop")
@@ -71,6 +77,20 @@ class DepthStats:
         self.last_t = frame.t
 
 
+@dataclass(frozen=True)
+class WorldState:
+    """What the planner and the policy see after a depth frame: the scan (min range per bearing
+    bin; `unknown` bins are not free), remembered obstacle points in base_link, and tracks."""
+
+    t: float
+    scan: np.ndarray
+    unknown: np.ndarray
+    bin_angles: np.ndarray
+    points_base: np.ndarray
+    tracks: list[Track]
+    floor_ok: bool | None
+
+
 class Job(Protocol):
     """What the loop runs: picks the target twist each RUNNING cycle."""
 
@@ -87,7 +107,10 @@ class Job(Protocol):
     def summary(self) -> dict[str, Any]: ...
 
 
-STAGES = ("base_read", "depth_read", "odometry", "job", "limits", "base_write", "cycle", "gc")
+STAGES = (
+    "base_read", "depth_read", "odometry", "perception", "memory", "tracking", "job", "limits",
+    "base_write", "cycle", "gc",
+)
 GC_FULL_EVERY = 600  # cycles between full collections (30 s at 20 Hz)
 
 
@@ -105,6 +128,7 @@ class LoopReport:
     odometry: Odometry
     timings: RingStats
     depth: DepthStats | None = None
+    world: WorldState | None = None
     transitions: list[tuple[float, str, str]] = field(default_factory=list)
 
     def as_dict(self) -> dict[str, Any]:
@@ -124,6 +148,11 @@ class LoopReport:
             "cycle_ms": self.timings.summary("cycle"),
             "period_jitter_ms": self.timings.summary("period_jitter"),
             "stage_ms": {s: self.timings.summary(s) for s in STAGES if s != "cycle"},
+            "world": None if self.world is None else {
+                "tracks_confirmed": sum(t.confirmed for t in self.world.tracks),
+                "memory_points": len(self.world.points_base),
+                "floor_ok": self.world.floor_ok,
+            },
             "depth": None if self.depth is None else {
                 "frames": self.depth.frames, "gaps": self.depth.gaps,
                 "missing": self.depth.missing, "last_frame_number": self.depth.last_frame_number,
@@ -150,6 +179,13 @@ class ControlLoop:
         self._depth = depth
         self.depth_stats = DepthStats() if depth is not None else None
         self.latest_depth: DepthFrame | None = None
+        self._mount = calibration.camera
+        self._perception: Perception | None = None
+        self._perceived: DepthFrame | None = None
+        self._memory = ObstacleMemory(config.memory)
+        self._tracker = Tracker(config.tracking)
+        self.world: WorldState | None = None
+        self._floor_ok: bool | None = None
         self._odom_filter = OdometryEKF(calibration.odometry.axle_length_m, config.odometry)
         self._link = link
         self._job = job
@@ -250,6 +286,7 @@ class ControlLoop:
             odometry=self.odometry,
             timings=self.timings,
             depth=self.depth_stats,
+            world=self.world,
             transitions=self._transitions,
         )
 
@@ -287,6 +324,9 @@ class ControlLoop:
             self.odometry = odom
             t2 = clock()
             rec(ch["odometry"], t2 - t1)
+            if self.latest_depth is not None and self.latest_depth is not self._perceived:
+                self._update_world(self.latest_depth, odom)
+                t2 = clock()
 
             why = self._degraded_reason(t2, hazard)
             if why is None:
@@ -332,6 +372,34 @@ class ControlLoop:
             gc.collect(2 if full else 0)
             rec(ch["gc"], clock() - t5)
             rate.sleep()
+
+    def _update_world(self, frame: DepthFrame, odom: Odometry) -> None:
+        """Perception → memory → tracking on the newest frame (older undrained ones are only
+        counted: a planner wants the present, not a backlog)."""
+        clock, rec, ch = self._clock, self.timings.record, self._ch
+        self._perceived = frame
+        if self._perception is None or self._perception.intrinsics != frame.intrinsics:
+            self._perception = Perception(frame.intrinsics, self._mount, self._cfg.perception)
+        t0 = clock()
+        out = self._perception.process(frame.depth)
+        t1 = clock()
+        rec(ch["perception"], t1 - t0)
+        pose = (odom.x, odom.y, odom.theta)
+        self._memory.update_from(out, pose, frame.t, view=self._perception.view)
+        remembered = self._memory.points_base(pose, frame.t)
+        t2 = clock()
+        rec(ch["memory"], t2 - t1)
+        near = thin_points(base_to_odom(out.points, pose), self._cfg.memory.cell_m)
+        tracks = self._tracker.update(near, frame.t, sensor_pose=np.array(pose))
+        rec(ch["tracking"], clock() - t2)
+        if out.floor_ok is not None and out.floor_ok != self._floor_ok:
+            self._floor_ok = out.floor_ok
+            if not out.floor_ok:
+                log.warning("the floor is not where the calibration puts it (tilt %.1f°, height"
+                            " %.3f m): has the camera moved?", out.floor_tilt_deg,
+                            out.floor_height_m)
+        self.world = WorldState(frame.t, out.scan.copy(), out.unknown.copy(), out.bin_angles,
+                                remembered, tracks, self._floor_ok)
 
     def _degraded_reason(self, now: float, hazard: str | None) -> str | None:
         if hazard is not None:

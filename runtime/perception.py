@@ -43,7 +43,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from runtime.config import CameraMount
+from runtime.calibration_schema import CameraMount
 from runtime.geometry import R_LINK_OPTICAL, rpy_matrix
 from runtime.schema import setting
 from runtime.types import DepthIntrinsics
@@ -53,7 +53,10 @@ F32 = np.float32
 @dataclass(frozen=True)
 class PerceptionConfig:
     decimation: int = setting(
-        2, "use every n-th pixel in both directions (1 = full 848x480)", choices=(1, 2, 4)
+        4,
+        "use every n-th pixel in both directions (1 = full 848x480); 4 keeps the world model"
+        " near its 2 ms budget and still spaces rays 3.6 cm apart at 4 m",
+        choices=(1, 2, 4),
     )
     z_min_m: float = setting(
         0.05,

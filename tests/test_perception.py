@@ -3,7 +3,7 @@
 Geometry note: decimation d of an 848x480 image uses exactly the pixels (u, v) = (d*i, d*j), whose
 rays equal those of a (848/d)x(480/d) camera with fx/d, fy/d, cx/d, cy/d. The 1,000-frame floor
 tests render at that smaller size (same rays, same noise model per pixel) to stay fast, and
-perceive with decimation 1 on it: the same pixels the default (decimation 2) pipeline looks at.
+perceive with decimation 1 on it: the same pixels a decimation-2 pipeline looks at (the default, 4, looks at a subset of them).
 """
 
 from __future__ import annotations
@@ -132,7 +132,7 @@ def test_every_obstacle_in_view_is_detected_with_small_point_error(decimation):
 
 def floor_false_positives(render_mount: CameraMount, frames: int, seed: int) -> int:
     """Render floor-only frames (noise on) from many poses with `render_mount`; perceive with the
-    nominal calibration. Half resolution == the default decimation 2 (see module docstring)."""
+    nominal calibration. Half resolution == decimation 2, a superset of the default 4's rays (see module docstring)."""
     k2 = scaled(D435_848x480, 2)
     rend = renderer(render_mount, k2, seed=seed)
     per = Perception(k2, MOUNT, PerceptionConfig(decimation=1, floor_check=False))
