@@ -37,9 +37,12 @@ def base_to_odom(points: np.ndarray, pose: tuple[float, float, float]) -> np.nda
 
 def thin_points(points: np.ndarray, cell_m: float) -> np.ndarray:
     """One point per cell of a `cell_m` grid: a depth image stacks hundreds of points on each
-    bit of floor-plan, and clustering cost grows with points, not with obstacles."""
+    bit of floor-plan, and clustering cost grows with points, not with obstacles. A scatter into
+    a dense grid over the points' bounding box (no sort): the last point written to a cell wins."""
     if len(points) == 0:
         return points
-    keys = np.floor(points / cell_m).astype(np.int64)
-    _, first = np.unique(keys[:, 0] * 2_000_003 + keys[:, 1], return_index=True)
-    return points[first]
+    ij = np.floor((points - points.min(axis=0)) / cell_m).astype(np.intp)
+    flat = ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1]
+    owner = np.full(int(flat.max()) + 1, -1, dtype=np.intp)
+    owner[flat] = np.arange(len(points))
+    return points[owner[owner >= 0]]
