@@ -109,7 +109,7 @@ class Job(Protocol):
 
 STAGES = (
     "base_read", "depth_read", "odometry", "perception", "memory", "tracking", "job", "limits",
-    "base_write", "cycle", "gc",
+    "base_write", "cycle", "floor_check", "gc",
 )
 GC_FULL_EVERY = 600  # cycles between full collections (30 s at 20 Hz)
 
@@ -357,6 +357,10 @@ class ControlLoop:
 
             if t5 - t0 < period:
                 self._notifier.kick_watchdog(t5)
+            self._check_floor()
+            t5_floor = clock()
+            rec(ch["floor_check"], t5_floor - t5)
+            t5 = t5_floor
             if self._job.finished:
                 break
             if self._max_cycles is not None and counters["cycles"] >= self._max_cycles:
@@ -392,14 +396,20 @@ class ControlLoop:
         near = thin_points(base_to_odom(out.points, pose), self._cfg.memory.cell_m)
         tracks = self._tracker.update(near, frame.t, sensor_pose=np.array(pose))
         rec(ch["tracking"], clock() - t2)
-        if out.floor_ok is not None and out.floor_ok != self._floor_ok:
-            self._floor_ok = out.floor_ok
-            if not out.floor_ok:
-                log.warning("the floor is not where the calibration puts it (tilt %.1f°, height"
-                            " %.3f m): has the camera moved?", out.floor_tilt_deg,
-                            out.floor_height_m)
         self.world = WorldState(frame.t, out.scan.copy(), out.unknown.copy(), out.bin_angles,
-                                remembered, tracks, self._floor_ok)
+                                remembered, tracks, out.floor_ok)
+
+    def _check_floor(self) -> None:
+        """Health check of the camera's calibration, run in the slack after the command: it
+        never delays one. Logged when the verdict changes."""
+        if self._perception is None or not self._perception.floor_check_due:
+            return
+        verdict = self._perception.check_floor()
+        if verdict.ok is not None and verdict.ok != self._floor_ok:
+            self._floor_ok = verdict.ok
+            if not verdict.ok:
+                log.warning("the floor is not where the calibration puts it (tilt %.1f°, height"
+                            " %.3f m): has the camera moved?", verdict.tilt_deg, verdict.height_m)
 
     def _degraded_reason(self, now: float, hazard: str | None) -> str | None:
         if hazard is not None:

@@ -51,6 +51,16 @@ from runtime.types import DepthIntrinsics
 F32 = np.float32
 
 @dataclass(frozen=True)
+class FloorVerdict:
+    """Is the floor where the calibration says? ok is None when too few floor points were seen."""
+
+    ok: bool | None
+    tilt_deg: float
+    height_m: float
+    points: int
+
+
+@dataclass(frozen=True)
 class PerceptionConfig:
     decimation: int = setting(
         4,
@@ -360,8 +370,6 @@ class Perception:
         np.minimum(free, F32(cfg.range_max_m), out=free)
         free[unknown] = 0.0
         m = z.size
-        if cfg.floor_check and self._frames % cfg.floor_check_every == 0:
-            self._floor = self._floor_check(z, valid)
         self._frames += 1
         floor = self._floor
         return PerceptionOutput(
@@ -372,6 +380,20 @@ class Perception:
         )
 
     # ------------------------------------------------------------------ floor check
+    @property
+    def floor_check_due(self) -> bool:
+        """True when floor_check_every frames have been processed since the last check."""
+        return self.config.floor_check and self._frames >= self.config.floor_check_every
+
+    def check_floor(self) -> FloorVerdict:
+        """Fit the floor in the frame last given to `process()` (its buffers are still in place:
+        call it before the next `process()`). The loop runs it in the slack after the cycle's
+        command has gone out, so a health check never delays a command; the verdict is held
+        and reported with every later output."""
+        self._frames = 0
+        self._floor = self._floor_check(self._z, self._mask2)
+        return FloorVerdict(*self._floor)
+
     def _floor_check(self, z: np.ndarray, valid: np.ndarray):
         """RANSAC floor plane near the calibrated floor, normal near vertical; then SVD refit."""
         cfg = self.config

@@ -16,7 +16,7 @@ import pytest
 from drivers.depth_source import D435_848x480
 from drivers.realsense_playback import PlaybackDepthSource
 from runtime.config import CameraMount
-from runtime.perception import Perception, PerceptionConfig
+from runtime.perception import FloorVerdict, Perception, PerceptionConfig
 from runtime.types import DepthFrame, DepthIntrinsics
 from sim_stub.depth_render import Box, Cylinder, DepthRenderer, Scene
 from sim_stub.recording import record
@@ -211,19 +211,22 @@ def test_playback_of_a_recording_gives_the_same_output(tmp_path):
 
 
 def test_floor_check_flags_a_camera_tilted_5_degrees():
-    per = Perception(D435_848x480, MOUNT, PerceptionConfig(floor_check_every=1))
-    ok = per.process(renderer().render((0.0, 0.0, 0.0), Scene(), noise=True))
-    assert ok.floor_ok is True and ok.floor_tilt_deg < 0.5
+    per = Perception(D435_848x480, MOUNT)
+
+    def verdict(rend: DepthRenderer) -> FloorVerdict:
+        per.process(rend.render((0.0, 0.0, 0.0), Scene(), noise=True))
+        return per.check_floor()
+
+    ok = verdict(renderer())
+    assert ok.ok is True and ok.tilt_deg < 0.5
     for rpy in ((0.0, 5.0, 0.0), (0.0, -5.0, 0.0), (5.0, 0.0, 0.0)):
-        tilted = renderer(CameraMount(MOUNT.translation_m, rpy))
-        out = per.process(tilted.render((0.0, 0.0, 0.0), Scene(), noise=True))
-        assert out.floor_ok is False, rpy
-        assert 4.0 < out.floor_tilt_deg < 6.0
+        out = verdict(renderer(CameraMount(MOUNT.translation_m, rpy)))
+        assert out.ok is False, rpy
+        assert 4.0 < out.tilt_deg < 6.0
     # a camera that dropped 5 cm is flagged too
     x, y, z = MOUNT.translation_m
-    low = renderer(CameraMount((x, y, z - 0.05), (0.0, 0.0, 0.0)))
-    out = per.process(low.render((0.0, 0.0, 0.0), Scene(), noise=True))
-    assert out.floor_ok is False and out.floor_height_m == pytest.approx(0.05 - 0.01, abs=0.01)
+    out = verdict(renderer(CameraMount((x, y, z - 0.05), (0.0, 0.0, 0.0))))
+    assert out.ok is False and out.height_m == pytest.approx(0.05 - 0.01, abs=0.01)
 
 
 def test_output_is_finite_and_bins_run_right_to_left():
@@ -237,12 +240,20 @@ def test_output_is_finite_and_bins_run_right_to_left():
     assert np.isfinite(out.points).all()
 
 
-def test_floor_check_runs_every_nth_frame_and_holds_its_verdict():
+def test_floor_check_is_due_every_nth_frame_and_its_verdict_is_held():
     per = Perception(D435_848x480, MOUNT, PerceptionConfig(floor_check_every=3))
     x, y, z = MOUNT.translation_m
     tilted = renderer(CameraMount((x, y, z), (0.0, 5.0, 0.0))).render((0.0, 0.0, 0.0), Scene())
     level = renderer().render((0.0, 0.0, 0.0), Scene())
-    verdicts = [per.process(d).floor_ok for d in (level, tilted, tilted, tilted, level)]
-    assert verdicts == [True, True, True, False, False]
-    off = Perception(D435_848x480, MOUNT, PerceptionConfig(floor_check=False)).process(level)
-    assert off.floor_ok is None and math.isnan(off.floor_tilt_deg)
+    due, held = [], []
+    for d in (level, level, level, tilted, tilted, tilted, level):
+        held.append(per.process(d).floor_ok)
+        due.append(per.floor_check_due)
+        if per.floor_check_due:
+            per.check_floor()  # as the loop does, in the slack after the command
+    assert due == [False, False, True, False, False, True, False]
+    assert held == [None, None, None, True, True, True, False]
+    off = Perception(D435_848x480, MOUNT, PerceptionConfig(floor_check=False))
+    out = off.process(level)
+    assert not off.floor_check_due
+    assert out.floor_ok is None and math.isnan(out.floor_tilt_deg)

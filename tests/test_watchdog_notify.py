@@ -52,8 +52,17 @@ class NotifyListener:
         raise AssertionError(f"{line!r} never arrived; got {[m for _, m in self.messages]}")
 
     def close(self) -> None:
+        """Stop the reader, then take whatever is still queued (the last message, STOPPING=1,
+        may have been sent a moment before)."""
         self._stop.set()
         self._thread.join()
+        self.sock.setblocking(False)
+        while True:
+            try:
+                data = self.sock.recv(4096)
+            except BlockingIOError:
+                break
+            self.messages.append((time.monotonic(), data.decode()))
         self.sock.close()
 
 
