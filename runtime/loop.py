@@ -20,7 +20,6 @@ import numpy as np
 
 from runtime.config import Calibration, Config
 from runtime.errors import DeviceError
-from runtime.geometry import base_to_odom, thin_points
 from runtime.limits import apply_limits
 from runtime.obstacle_memory import ObstacleMemory
 from runtime.odometry_ekf import OdometryEKF
@@ -379,7 +378,8 @@ class ControlLoop:
 
     def _update_world(self, frame: DepthFrame, odom: Odometry) -> None:
         """Perception → memory → tracking on the newest frame (older undrained ones are only
-        counted: a planner wants the present, not a backlog)."""
+        counted: a planner wants the present, not a backlog). The tracker clusters the frame's
+        points as the memory binned them, one per cell."""
         clock, rec, ch = self._clock, self.timings.record, self._ch
         self._perceived = frame
         if self._perception is None or self._perception.intrinsics != frame.intrinsics:
@@ -393,8 +393,8 @@ class ControlLoop:
         remembered = self._memory.points_base(pose, frame.t)
         t2 = clock()
         rec(ch["memory"], t2 - t1)
-        near = thin_points(base_to_odom(out.points, pose), self._cfg.memory.cell_m)
-        tracks = self._tracker.update(near, frame.t, sensor_pose=np.array(pose))
+        tracks = self._tracker.update(self._memory.frame_points, frame.t,
+                                      sensor_pose=np.array(pose))
         rec(ch["tracking"], clock() - t2)
         self.world = WorldState(frame.t, out.scan.copy(), out.unknown.copy(), out.bin_angles,
                                 remembered, tracks, out.floor_ok)

@@ -66,6 +66,9 @@ class ObstacleMemory:
     """Bounded odom-frame point memory with decay and ray clearing."""
 
     def __init__(self, config: ObstacleMemoryConfig | None = None) -> None:
+        # The latest frame's points in odom, one per cell: what the tracker clusters (a depth
+        # image stacks hundreds of points per cell; clustering cost grows with points).
+        self.frame_points = np.empty((0, 2))
         self.config = config if config is not None else ObstacleMemoryConfig()
         c = self.config.max_points
         self._key = np.empty(c, dtype=np.int64)
@@ -123,6 +126,7 @@ class ObstacleMemory:
             alive &= ~clear
             self._compact(alive)
         pts = np.asarray(points_base)
+        self.frame_points = np.empty((0, 2))
         if len(pts):
             self._insert(pts, heights, px, py, c, s, t)
 
@@ -208,6 +212,7 @@ class ObstacleMemory:
             ux = np.concatenate([ux, ox[out[first]]])
             uy = np.concatenate([uy, oy[out[first]]])
             zlo, zhi = np.concatenate([zlo, lo2]), np.concatenate([zhi, hi2])
+        self.frame_points = np.column_stack([ux, uy])
         n = self._n
         # match against remembered cells
         order = np.argsort(self._key[:n])

@@ -145,6 +145,20 @@ class OdometryFilterConfig:
     )
 
 
+def _mahalanobis2(y: np.ndarray, S: np.ndarray) -> float:
+    """yᵀ S⁻¹ y for the 1- and 2-dimensional innovations used here, in closed form (a general
+    solve costs more than the rest of the gate at 50 Hz); inf for a singular S."""
+    if S.shape == (1, 1):
+        s = float(S[0, 0])
+        return float(y[0, 0]) ** 2 / s if s > 0 else math.inf
+    a, b, c, d = float(S[0, 0]), float(S[0, 1]), float(S[1, 0]), float(S[1, 1])
+    det = a * d - b * c
+    if not det > 0:
+        return math.inf
+    y0, y1 = float(y[0, 0]), float(y[1, 0])
+    return (d * y0 * y0 - (b + c) * y0 * y1 + a * y1 * y1) / det
+
+
 class _UnicycleEKF(ExtendedKalmanFilter):
     """filterpy's EKF with the nonlinear unicycle prediction (its own predict_x is linear)."""
 
@@ -347,8 +361,7 @@ class OdometryEKF:
         """Fuse z unless it fails the gate; True when it was fused."""
         ekf = self._ekf
         y = self._residual(z, H @ ekf.x)
-        S = H @ ekf.P @ H.T + R
-        d2 = float((y.T @ np.linalg.solve(S, y))[0, 0])
+        d2 = _mahalanobis2(y, H @ ekf.P @ H.T + R)
         self.last_mahalanobis2[name] = d2
         gate = self.config.wheel_gate_chi2 if name == "wheel" else self.config.gyro_gate_chi2
         if not d2 <= gate:

@@ -352,3 +352,16 @@ def test_config_is_a_documented_schema() -> None:
         build(OdometryFilterConfig, {"wheel_heading": "both"}, "test.yaml")
     with pytest.raises(ValueError, match="axle_m"):
         OdometryEKF(0.0)
+
+
+def test_closed_form_gate_distance_matches_a_general_solve() -> None:
+    from runtime.odometry_ekf import _mahalanobis2
+
+    rng = np.random.default_rng(4)
+    for n in (1, 2):
+        for _ in range(200):
+            a = rng.normal(size=(n, n))
+            S = a @ a.T + 0.1 * np.eye(n)
+            y = rng.normal(size=(n, 1))
+            assert _mahalanobis2(y, S) == pytest.approx((y.T @ np.linalg.solve(S, y)).item(), rel=1e-9)
+    assert _mahalanobis2(np.ones((2, 1)), np.zeros((2, 2))) == math.inf

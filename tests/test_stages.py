@@ -534,17 +534,3 @@ def test_hold_job_always_stops_and_never_finishes() -> None:
         assert not job.finished
     assert job.summary() == {}
 
-
-def test_thin_points_keeps_one_point_per_cell_and_every_occupied_cell() -> None:
-    import numpy as np
-
-    from runtime.geometry import thin_points
-
-    rng = np.random.default_rng(0)
-    pts = rng.uniform(-2.0, 2.0, size=(5000, 2))
-    thinned = thin_points(pts, 0.1)
-    origin = pts.min(axis=0)
-    cells = {tuple(c) for c in np.floor((pts - origin) / 0.1).astype(int)}
-    kept = [tuple(c) for c in np.floor((thinned - origin) / 0.1).astype(int)]
-    assert len(kept) == len(set(kept)) == len(cells)
-    assert thin_points(np.zeros((0, 2)), 0.1).shape == (0, 2)

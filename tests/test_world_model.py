@@ -1,5 +1,5 @@
 """The world model end to end on rendered depth in scenario (d): D435-like depth of 20 people →
-perception → thinning → tracker, scored against the simulator's ground truth."""
+perception → memory (one point per cell) → tracker, scored against the simulator's ground truth."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from scipy.optimize import linear_sum_assignment
 
 from drivers.depth_source import D435_848x480
 from runtime.config import CameraMount, Config
-from runtime.geometry import base_to_odom, thin_points
+from runtime.obstacle_memory import ObstacleMemory
 from runtime.perception import Perception
 from runtime.tracking import Tracker
 from sim_stub.depth_render import DepthRenderer
@@ -30,6 +30,7 @@ def test_tracks_of_people_in_view_match_ground_truth_and_static_ones_stay_still(
     renderer = DepthRenderer(D435_848x480, CameraMount(), base_z=BASE_LINK_HEIGHT_M, seed=3)
     perception = Perception(D435_848x480, CameraMount(), cfg.perception)
     tracker = Tracker(cfg.tracking)
+    memory = ObstacleMemory(cfg.memory)
     statics = np.array([o.center for o in world.obstacles if isinstance(o, CylinderSpec)])
     pos_err, speed_err, static_speed = [], [], []
     owner: dict[int, int] = {}
@@ -40,8 +41,8 @@ def test_tracks_of_people_in_view_match_ground_truth_and_static_ones_stay_still(
         snap = world.snapshot()
         pose = tuple(snap.robot_pose)
         out = perception.process(renderer.render(pose, scene_from(world, snap), noise=True))
-        points = thin_points(base_to_odom(out.points, pose), cfg.memory.cell_m)
-        tracks = [t for t in tracker.update(points, world.t, sensor_pose=np.array(pose))
+        memory.update_from(out, pose, world.t, view=perception.view)
+        tracks = [t for t in tracker.update(memory.frame_points, world.t, sensor_pose=np.array(pose))
                   if t.confirmed]
         if not tracks:
             continue
