@@ -328,3 +328,18 @@ def test_cv_matrices_shape():
     f, q = cv_matrices(0.1, 1.0)
     assert f.shape == q.shape == (4, 4)
     assert np.allclose(q, q.T) and np.all(np.linalg.eigvalsh(q) >= -1e-15)
+
+
+def test_single_linkage_cut_matches_scipy_fcluster():
+    from scipy.cluster.hierarchy import fcluster, linkage
+
+    from runtime.tracking import _cut_single_linkage
+
+    rng = np.random.default_rng(7)
+    for _ in range(50):
+        centres = rng.uniform(-3, 3, size=(int(rng.integers(2, 80)), 2))
+        ours, count = _cut_single_linkage(centres, 0.4)
+        ref = fcluster(linkage(centres, method="single"), t=0.4, criterion="distance")
+        # same partition (labels may be numbered differently)
+        pairs = {(a, b) for a, b in zip(ours, ref)}
+        assert len(pairs) == count == len(set(ref))
