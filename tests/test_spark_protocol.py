@@ -184,4 +184,10 @@ def test_every_good_frame_in_noise_is_recovered(pieces, cuts):
     got = []
     for chunk in _chunked(stream, cuts):
         got += parser.feed(chunk)
-    assert [encode_frame(f.command, f.payload) for f in got] == expected
+    got_bytes = [encode_frame(f.command, f.payload) for f in got]
+    # every good frame comes back, in order; anything else it found is a frame that the noise
+    # really spelled out byte for byte (noise pieces can join into one), never an invention
+    remaining = iter(got_bytes)
+    assert all(any(g == want for g in remaining) for want in expected)
+    assert all(g in stream for g in got_bytes)
+    assert len(got_bytes) >= len(expected)
