@@ -180,11 +180,12 @@ class ObstacleMemory:
         gx, gy = ix - ix0, iy - iy0
         ing = (gx >= 0) & (gx < gs) & (gy >= 0) & (gy < gs)
         flat = (gx * gs + gy)[ing]
-        cnt = np.bincount(flat, minlength=gs * gs)
-        cells = np.flatnonzero(cnt)
         src = np.flatnonzero(ing)
         self._g_rep[flat] = src  # last point written per cell is its representative
-        rep = self._g_rep[cells]
+        # a point is its cell's representative iff the grid kept its index: one per cell, found
+        # in O(points) without scanning the whole grid
+        is_rep = self._g_rep[flat] == src
+        cells, rep = flat[is_rep], src[is_rep]
         ukeys = ((cells // gs + ix0 + _KEY_OFF) << 32) | (cells % gs + iy0 + _KEY_OFF)
         ux, uy = ox[rep], oy[rep]
         if hz is None:
