@@ -1,0 +1,373 @@
+"""Safety shield: certify the planner's command, or replace it (pure: no clock, no I/O).
+
+Motion model of a certificate (all in base_link at the time of the world data, t = 0):
+  phase 0  [0, latency)                    the robot keeps its current twist `state` (the command
+                                           the base is executing until the new one arrives);
+  phase 1  [latency, latency + period)     it moves at `u` = apply_limits(cmd, state, period,
+                                           limits) (the command as the limits stage, applied
+                                           last, will pass it; cfg.model_limits=False: cmd as is);
+  phase 2  braking                         v falls to 0 at `limits.decel_max`, ω to 0 at
+                                           `limits.alpha_max`, both at once, until both are 0.
+The horizon ends when the robot stands still. Unicycle kinematics, integrated with `substeps`
+midpoint sub-steps per check step `check_dt`; the footprint is a disc of radius
+`robot_radius + margin` (R) around base_link.
+
+Obstacle model (what must stay clear, exactly):
+  (a) static points: every point p of `points` must stay at distance >= R from the centre.
+  (b) tracks: track i's centre moves piecewise linearly through `track_positions[i, k]` at times
+      k·track_dt (beyond the last given time it continues with its last segment's velocity), its
+      std likewise; the centre must stay at distance >= R + radius_i + k_sigma·std_i(t).
+  (c) unseen space: while the robot translates (v != 0), its LEAD POINTS — the footprint boundary
+      points at angles within ±lead_half_angle of the direction of travel (heading, or heading+π
+      when reversing), `lead_rays` of them — must lie inside the current footprint disc
+      (|p| <= R + unseen_tolerance) or in SEEN space: inside the camera's bearing span, in a bin
+      that is not `unknown`, and nearer than that bin's scan return (beyond a return is shadow).
+      Reversing with cfg.reverse_into_unseen=True skips (c) for v < 0 (trusts obstacle memory).
+      Pure rotation in place (v == 0) sweeps only the current disc and is never unseen.
+      The flanks of the moving disc outside the lead arc are left to obstacle memory (a), which
+      remembers what left the 87° view: the camera cannot see them at all.
+  (d) blind zone (closer than the camera's minimum range, `blind_range[b]` in base_link):
+      an UNKNOWN bin (perception's missing-floor test flags a bin when something closer than the
+      minimum range blanks the floor) is occupied over its whole wedge by (c). In a KNOWN bin,
+      with cfg.blind_zone == "memory" (default) the blind zone is occupied only where obstacle
+      memory holds points (a) — the floor behind it was seen this frame; with "occupied" a lead
+      point in a known bin's blind zone (beyond the current disc) is occupied too (strict; it
+      forbids all forward motion when blind_range > R + unseen_tolerance).
+Discretisation is made conservative: the check at sample times uses slacks (half the distance the
+centre / a track / the clearance can change between samples for (a)/(b); a full step of lead-point
+motion, as a dilation of bearing and range, for (c)/(d)), so a continuous-time violation of the
+model is always caught at the neighbouring sample.
+
+`shield` passes a certified command UNCHANGED; otherwise it substitutes the certified DWA
+candidate nearest in normalised (v, ω) (ties: lowest cost); otherwise it brakes: v toward 0 by
+decel_max·period and ω toward 0 by alpha_max·period. Every intervention carries a reason.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from runtime.config import LimitsConfig
+from runtime.limits import apply_limits
+from runtime.schema import setting
+from runtime.types import Twist
+
+
+@dataclass(frozen=True)
+class ShieldConfig:
+    """Shield settings. Braking rates are not repeated here: the guaranteed deceleration is
+    `limits.decel_max` and the angular braking rate `limits.alpha_max` (LimitsConfig)."""
+
+    robot_radius: float = setting(0.17, "radius of the robot's footprint disc (Spark)", "m",
+                                  min=0.0, max=1.0)
+    margin: float = setting(0.05, "clearance added to the footprint radius", "m", min=0.0, max=1.0)
+    latency: float = setting(0.05, "sensing-to-actuation delay; the current twist is kept that long",
+                             "s", min=0.0, max=1.0)
+    period: float = setting(0.05, "control period; the new command is held that long before braking",
+                            "s", min=0.0, max=1.0, min_exclusive=True)
+    check_dt: float = setting(0.01, "time between checked samples of the trajectory", "s",
+                              min=0.0, max=0.2, min_exclusive=True)
+    substeps: int = setting(4, "integration sub-steps per check step", min=1, max=64)
+    k_sigma: float = setting(2.0, "tracks are inflated by this many position standard deviations",
+                             min=0.0, max=10.0)
+    lead_half_angle_deg: float = setting(
+        30.0, "half-angle of the footprint's lead arc checked against unseen space", "deg",
+        min=0.0, max=90.0)
+    lead_rays: int = setting(5, "points on the lead arc checked against unseen space", min=1, max=64)
+    unseen_tolerance: float = setting(
+        0.005, "a lead point this close outside the current disc still counts as inside", "m",
+        min=0.0, max=0.1)
+    blind_zone: str = setting(
+        "memory", "known bins' space closer than the camera's minimum range: 'memory' = occupied"
+        " only where obstacle memory has points; 'occupied' = always occupied",
+        choices=("memory", "occupied"))
+    reverse_into_unseen: bool = setting(
+        False, "certify reversing into space the camera cannot see (trusting obstacle memory)")
+    model_limits: bool = setting(
+        True, "certify the command as the limits stage will pass it (rate-limited from state)")
+    max_candidates: int = setting(64, "most DWA candidates certified per cycle before braking",
+                                  min=0, max=100000)
+
+    @property
+    def footprint(self) -> float:
+        return self.robot_radius + self.margin
+
+
+@dataclass(frozen=True)
+class ShieldWorld:
+    """The world as the shield sees it, all in base_link at t = 0 (the data's time).
+
+    Tracks: predicted centres at times k·track_dt, k = 0..S-1 (Tracker.predict_positions with
+    t0 = now, transformed into base_link), their position std and radii.
+    Scan: bins right to left (perception conventions); `blind_range` None = no blind zone data
+    (treated as 0, i.e. only unknown bins are blind).
+    """
+
+    points: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    track_positions: np.ndarray = field(default_factory=lambda: np.zeros((0, 1, 2)))
+    track_std: np.ndarray = field(default_factory=lambda: np.zeros((0, 1)))
+    track_radii: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    track_dt: float = 0.1
+    bin_angles: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    unknown: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    scan: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    blind_range: np.ndarray | None = None
+    bin_width: float = 0.0  # rad; 0 = inferred from bin_angles spacing
+    track_ids: tuple[int, ...] | None = None
+
+
+@dataclass(frozen=True)
+class Certificate:
+    ok: bool
+    reason: str | None
+    min_clearance: float  # smallest margin over (a) and (b), m (inf when nothing to clear)
+    time_of_min: float  # s, when it occurs
+
+
+@dataclass(frozen=True)
+class ShieldDecision:
+    command: Twist
+    intervened: bool
+    reason: str | None
+    certificate: Certificate
+
+
+def _brake(x: float, rate: float, t: np.ndarray) -> np.ndarray:
+    return np.sign(x) * np.maximum(abs(x) - rate * t, 0.0)
+
+
+def rollout(cmd: Twist, state: Twist, cfg: ShieldConfig, limits: LimitsConfig
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, Twist]:
+    """The certificate's trajectory: times (N,), poses (N, 3), v (N,), ω (N,), and the twist u
+    held in phase 1. Samples every check_dt (plus the exact end time)."""
+    u = apply_limits(cmd, state, cfg.period, limits) if cfg.model_limits else cmd
+    t1 = cfg.latency + cfg.period
+    t_stop = t1 + max(abs(u.v) / limits.decel_max, abs(u.omega) / limits.alpha_max)
+    n = max(math.ceil(t_stop / cfg.check_dt - 1e-9), 1)
+    h = t_stop / n if t_stop > 0 else cfg.check_dt
+    m = cfg.substeps
+    tf = np.arange(n * m + 1) * (h / m)
+    tm = tf[:-1] + 0.5 * (h / m)  # midpoints of sub-steps
+
+    def twist_at(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        v = np.where(t < cfg.latency, state.v, u.v)
+        w = np.where(t < cfg.latency, state.omega, u.omega)
+        tb = t - t1
+        brake = tb >= 0
+        v = np.where(brake, _brake(u.v, limits.decel_max, np.maximum(tb, 0)), v)
+        w = np.where(brake, _brake(u.omega, limits.alpha_max, np.maximum(tb, 0)), w)
+        return v, w
+
+    vm, wm = twist_at(tm)
+    ds = h / m
+    th = np.concatenate(([0.0], np.cumsum(wm * ds)))
+    thm = 0.5 * (th[:-1] + th[1:])
+    x = np.concatenate(([0.0], np.cumsum(vm * np.cos(thm) * ds)))
+    y = np.concatenate(([0.0], np.cumsum(vm * np.sin(thm) * ds)))
+    idx = np.arange(0, n * m + 1, m)
+    ts = tf[idx]
+    vs, ws = twist_at(ts)
+    # the sampled velocity at phase boundaries: use the larger magnitude of either side
+    return ts, np.stack([x[idx], y[idx], th[idx]], axis=1), vs, ws, u
+
+
+def _track_at(world: ShieldWorld, ts: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """Track centres (T, N, 2) and std (T, N) at times ts, piecewise linear with linear
+    extrapolation; plus the largest track speed and std rate (for the between-sample slack)."""
+    P = np.asarray(world.track_positions, dtype=float)
+    S = np.asarray(world.track_std, dtype=float)
+    _nt, ns = P.shape[0], P.shape[1]
+    if ns == 1:
+        return (np.repeat(P, len(ts), axis=1), np.repeat(S, len(ts), axis=1), 0.0, 0.0)
+    f = ts / world.track_dt
+    k = np.clip(np.floor(f).astype(int), 0, ns - 2)
+    a = (f - k)[None, :]
+    pos = P[:, k] + a[..., None] * (P[:, k + 1] - P[:, k])
+    std = S[:, k] + a * (S[:, k + 1] - S[:, k])
+    std = np.maximum(std, 0.0)
+    speed = float(np.max(np.linalg.norm(np.diff(P, axis=1), axis=2))) / world.track_dt
+    srate = float(np.max(np.abs(np.diff(S, axis=1)))) / world.track_dt
+    return pos, std, speed, srate
+
+
+def _bin_geometry(world: ShieldWorld) -> tuple[float, float]:
+    ang = np.asarray(world.bin_angles, dtype=float)
+    if world.bin_width > 0:
+        w = world.bin_width
+    elif len(ang) >= 2:
+        w = float(ang[1] - ang[0])
+    else:
+        raise ValueError("ShieldWorld needs bin_width with fewer than two bins")
+    return float(ang[0] - w / 2), w
+
+
+def _unseen(world: ShieldWorld, cfg: ShieldConfig, pts: np.ndarray, slack: float
+            ) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """For lead points (L, 2): bad mask (L,), the offending bin (-1 = outside view), and the kind
+    of each ('outside', 'unknown', 'shadow', 'blind'). Dilated by `slack` in range and bearing."""
+    nb = len(world.bin_angles)
+    r = np.hypot(pts[:, 0], pts[:, 1])
+    bad = np.zeros(len(pts), dtype=bool)
+    where = np.full(len(pts), -1)
+    kind = np.full(len(pts), "", dtype=object)
+    if nb == 0:
+        bad[:] = True
+        kind[:] = "outside"
+        return bad, where, list(kind)
+    lo, w = _bin_geometry(world)
+    phi = np.arctan2(pts[:, 1], pts[:, 0])
+    delta = np.arcsin(np.clip(slack / np.maximum(r, 1e-12), 0.0, 1.0))
+    delta = np.where(r <= slack, math.pi, delta)
+    k0 = np.floor((phi - delta - lo) / w).astype(int)
+    k1 = np.floor((phi + delta - lo) / w).astype(int)
+    outside = (k0 < 0) | (k1 >= nb)
+    bad |= outside
+    kind[outside] = "outside"
+    unknown = np.asarray(world.unknown, dtype=bool)
+    scan = np.asarray(world.scan, dtype=float)
+    blind = (np.zeros(nb) if world.blind_range is None
+             else np.broadcast_to(np.asarray(world.blind_range, dtype=float), (nb,)))
+    span = int(np.max(k1 - k0)) if len(pts) else 0
+    for j in range(span + 1):
+        k = k0 + j
+        valid = (~outside) & (k <= k1)
+        kc = np.clip(k, 0, nb - 1)
+        unk = valid & unknown[kc] & ~bad
+        bad |= unk
+        where[unk] = kc[unk]
+        kind[unk] = "unknown"
+        sh = valid & (r + slack >= scan[kc]) & ~bad
+        bad |= sh
+        where[sh] = kc[sh]
+        kind[sh] = "shadow"
+        if cfg.blind_zone == "occupied":
+            bl = valid & (r - slack < blind[kc]) & ~bad
+            bad |= bl
+            where[bl] = kc[bl]
+            kind[bl] = "blind"
+    return bad, where, list(kind)
+
+
+def certify(cmd: Twist, state: Twist, world: ShieldWorld, cfg: ShieldConfig,
+            limits: LimitsConfig | None = None) -> Certificate:
+    """Does `cmd`, held as described in the module docs, keep the footprint clear of the
+    obstacle model until the robot stands still?"""
+    limits = limits if limits is not None else LimitsConfig()
+    if not (cmd.is_finite() and state.is_finite()):
+        return Certificate(False, "non-finite command or state", -math.inf, 0.0)
+    ts, pose, vs, _ws, u = rollout(cmd, state, cfg, limits)
+    R = cfg.footprint
+    c = pose[:, :2]
+    h = float(ts[1] - ts[0]) if len(ts) > 1 else cfg.check_dt
+    vmax = max(abs(state.v), abs(u.v))
+    wmax = max(abs(state.omega), abs(u.omega))
+    slack_c = 0.5 * vmax * h + 1e-9
+    best = (math.inf, 0.0)
+    failures: list[tuple[float, str]] = []
+
+    # (a) static points: bounding-box prefilter, then all distances
+    pts = np.asarray(world.points, dtype=float).reshape(-1, 2)
+    if len(pts):
+        lo_b = c.min(axis=0) - R - slack_c
+        hi_b = c.max(axis=0) + R + slack_c
+        near = np.all((pts >= lo_b) & (pts <= hi_b), axis=1)
+        q = pts[near]
+        if len(q):
+            d2 = ((c[:, None, :] - q[None, :, :]) ** 2).sum(axis=2)
+            i, j = np.unravel_index(int(np.argmin(d2)), d2.shape)
+            margin = math.sqrt(float(d2[i, j])) - R - slack_c
+            best = min(best, (margin, float(ts[i])))
+            if margin < 0:
+                tbad = float(ts[np.argmax(d2.min(axis=1) < (R + slack_c) ** 2)])
+                p = q[j]
+                failures.append((tbad, (f"cmd would come within {R:.2f} m of the obstacle point "
+                                       f"({p[0]:.2f}, {p[1]:.2f}) at t={tbad:.2f} s")))
+
+    # (b) tracks
+    nt = int(np.asarray(world.track_positions).shape[0])
+    if nt:
+        tp, ts_std, tspeed, srate = _track_at(world, ts)
+        radii = np.asarray(world.track_radii, dtype=float).reshape(nt, 1)
+        slack_t = 0.5 * (vmax + tspeed + cfg.k_sigma * srate) * h + 1e-9
+        dist = np.linalg.norm(c[None, :, :] - tp, axis=2)
+        marg = dist - (R + radii + cfg.k_sigma * ts_std) - slack_t  # (T, N)
+        a, k = np.unravel_index(int(np.argmin(marg)), marg.shape)
+        best = min(best, (float(marg[a, k]), float(ts[k])))
+        if marg[a, k] < 0:
+            hit = marg < 0
+            first = np.where(hit.any(axis=1), np.argmax(hit, axis=1), len(ts))
+            a = int(np.argmin(first))
+            tbad = float(ts[first[a]])
+            tid = world.track_ids[a] if world.track_ids is not None else a
+            failures.append((tbad, f"cmd would reach track {tid} at t={tbad:.2f} s"))
+
+    # (c)/(d) unseen space at the lead arc
+    moving = vs != 0.0
+    if cfg.reverse_into_unseen:
+        moving &= vs > 0.0
+    if moving.any():
+        beta = math.radians(cfg.lead_half_angle_deg)
+        offs = np.linspace(-beta, beta, cfg.lead_rays) if cfg.lead_rays > 1 else np.zeros(1)
+        kk = np.nonzero(moving)[0]
+        heading = pose[kk, 2] + np.where(vs[kk] < 0, math.pi, 0.0)
+        ang = heading[:, None] + offs[None, :]
+        lead = c[kk, None, :] + R * np.stack([np.cos(ang), np.sin(ang)], axis=2)
+        lead = lead.reshape(-1, 2)
+        slack_u = (vmax + R * wmax) * h + 1e-9
+        outside_disc = np.hypot(lead[:, 0], lead[:, 1]) > R + cfg.unseen_tolerance - slack_u
+        bad, where, kind = _unseen(world, cfg, lead, slack_u)
+        bad &= outside_disc
+        if bad.any():
+            f = int(np.argmax(bad))
+            tbad = float(ts[kk[f // len(offs)]])
+            b = int(where[f])
+            what = {"outside": "space outside the camera's view",
+                    "unknown": f"unseen space in bin {b}",
+                    "shadow": f"space behind the scan return in bin {b}",
+                    "blind": f"the camera's blind zone in bin {b}"}[kind[f]]
+            failures.append((tbad, f"cmd would enter {what} at t={tbad:.2f} s"))
+
+    if failures:
+        failures.sort(key=lambda x: x[0])
+        return Certificate(False, failures[0][1], best[0], best[1])
+    return Certificate(True, None, best[0], best[1])
+
+
+def brake_command(state: Twist, cfg: ShieldConfig, limits: LimitsConfig) -> Twist:
+    """Maximum braking for one period: v toward 0 by decel_max·period, ω by alpha_max·period."""
+    dv = limits.decel_max * cfg.period
+    dw = limits.alpha_max * cfg.period
+    v = math.copysign(max(abs(state.v) - dv, 0.0), state.v) if math.isfinite(state.v) else 0.0
+    w = (math.copysign(max(abs(state.omega) - dw, 0.0), state.omega)
+         if math.isfinite(state.omega) else 0.0)
+    return Twist(v if v != 0.0 else 0.0, w if w != 0.0 else 0.0)
+
+
+def shield(cmd: Twist, state: Twist, candidates: np.ndarray, costs: np.ndarray | None,
+           world: ShieldWorld, limits: LimitsConfig, cfg: ShieldConfig) -> ShieldDecision:
+    """Certify `cmd`; pass it unchanged if certified, else the nearest certified candidate
+    (candidates (K, 2) of (v, ω), costs (K,) for ties), else brake."""
+    cert = certify(cmd, state, world, cfg, limits)
+    if cert.ok:
+        return ShieldDecision(cmd, False, None, cert)
+    cand = np.asarray(candidates, dtype=float).reshape(-1, 2)
+    if len(cand) and cfg.max_candidates > 0 and cmd.is_finite():
+        sv = max(limits.v_max - limits.v_min, 1e-9)
+        sw = max(2 * limits.omega_max, 1e-9)
+        d = ((cand[:, 0] - cmd.v) / sv) ** 2 + ((cand[:, 1] - cmd.omega) / sw) ** 2
+        cost = (np.zeros(len(cand)) if costs is None
+                else np.nan_to_num(np.asarray(costs, dtype=float), nan=np.inf))
+        order = np.lexsort((cost, d))[: cfg.max_candidates]
+        for i in order:
+            if not np.all(np.isfinite(cand[i])):
+                continue
+            tw = Twist(float(cand[i, 0]), float(cand[i, 1]))
+            ci = certify(tw, state, world, cfg, limits)
+            if ci.ok:
+                return ShieldDecision(tw, True, f"replaced by candidate {int(i)}: {cert.reason}", ci)
+    br = brake_command(state, cfg, limits)
+    cb = certify(br, state, world, cfg, limits)
+    return ShieldDecision(br, True, f"braking, no certified candidate: {cert.reason}", cb)
