@@ -1,0 +1,137 @@
+"""Textbook per-sample DWA of the same cost and admissibility as runtime.dwa (coarse grid only).
+
+Used only by the benchmark and the identical-choice test. Written in the style of the common
+textbook implementation (PythonRobotics' dynamic_window_approach): for v, for ω, a trajectory
+loop, an obstacle loop per trajectory point. It shares runtime.dwa's map preparation
+(`prepare`: the dynamic window, the static distance-transform grid, the static clusters for
+density), so its static clearance has the same quantisation; everything per sample is computed
+here in plain Python. The trajectory is integrated step by step on exact arcs (not Euler), so it
+is the same motion model as the vectorised closed form up to rounding.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from runtime.config import LimitsConfig
+from runtime.dwa import DWAConfig, braking_sample, prepare
+
+
+@dataclass(frozen=True)
+class ReferenceResult:
+    samples: np.ndarray
+    terms: dict[str, np.ndarray]  # normalised heading, clearance, velocity, density
+    raw: dict[str, np.ndarray]
+    total: np.ndarray
+    admissible: np.ndarray
+    best_index: int
+    best: tuple[float, float]
+
+
+def _trajectory(v: float, w: float, dt: float, steps: int) -> list[tuple[float, float, float]]:
+    x = y = th = 0.0
+    out = []
+    for _ in range(steps):
+        th_new = th + w * dt
+        if abs(w) < 1e-9:
+            x += v * dt * math.cos(th)
+            y += v * dt * math.sin(th)
+        else:
+            x += v / w * (math.sin(th_new) - math.sin(th))
+            y += v / w * (math.cos(th) - math.cos(th_new))
+        th = th_new
+        out.append((x, y, th))
+    return out
+
+
+def _normalise(vals: list[float]) -> list[float]:
+    lo, hi = min(vals), max(vals)
+    if not hi > lo:
+        return [0.0] * len(vals)
+    return [(a - lo) / (hi - lo) for a in vals]
+
+
+def plan_reference(cfg: DWAConfig, lim: LimitsConfig, v0: float, omega0: float, goal,
+                   points, obs_pos=None, obs_radius=None) -> ReferenceResult:
+    prep = prepare(cfg, lim, v0, omega0, points)
+    steps = prep.steps
+    obs = [] if obs_pos is None else np.asarray(obs_pos, float).reshape(-1, steps, 2).tolist()
+    rad = [] if obs_radius is None else np.asarray(obs_radius, float).reshape(-1, steps).tolist()
+    clusters = prep.clusters.tolist()
+    grid = None if prep.dist_grid is None else prep.dist_grid.tolist()
+    n, inv_cell, half = prep.n_cells, 1.0 / cfg.grid_cell_m, prep.half
+    gx, gy = float(goal[0]), float(goal[1])
+    v_lo, v_hi, w_lo, w_hi = prep.window
+    vs = np.linspace(v_lo, v_hi, cfg.n_v).tolist()
+    ws = np.linspace(w_lo, w_hi, cfg.n_omega).tolist()
+
+    samples, raws = [], {"heading": [], "clearance": [], "velocity": [], "density": []}
+    admissible = []
+    for v in vs:
+        for w in ws:
+            traj = _trajectory(v, w, cfg.dt, steps)
+            min_gap = math.inf
+            first_coll = -1
+            n_obs = len(obs) + len(clusters)
+            closest = [math.inf] * n_obs
+            dist_sum = [0.0] * n_obs
+            for k, (x, y, _) in enumerate(traj):
+                gap_k = math.inf
+                if grid is not None:
+                    ix = min(max(int((x + half) * inv_cell), 0), n - 1)
+                    iy = min(max(int((y + half) * inv_cell), 0), n - 1)
+                    gap_k = grid[ix][iy] - prep.r_eff
+                for j in range(len(obs)):
+                    ox, oy = obs[j][k]
+                    d = math.sqrt((x - ox) ** 2 + (y - oy) ** 2)
+                    gap_k = min(gap_k, d - rad[j][k] - prep.r_eff)
+                    closest[j] = min(closest[j], d)
+                    dist_sum[j] += d
+                for c, (ox, oy) in enumerate(clusters):
+                    j = len(obs) + c
+                    d = math.sqrt((x - ox) ** 2 + (y - oy) ** 2)
+                    closest[j] = min(closest[j], d)
+                    dist_sum[j] += d
+                if gap_k < 0.0 and first_coll < 0:
+                    first_coll = k
+                min_gap = min(min_gap, gap_k)
+            x, y, th = traj[-1]
+            ang = math.atan2(gy - y, gx - x) - th
+            ang = (ang + math.pi) % (2.0 * math.pi) - math.pi
+            heading = math.pi - abs(ang)
+            clearance = min(max(min_gap, 0.0), cfg.clearance_cap_m)
+            count, mean_sum = 0, 0.0
+            for j in range(len(closest)):
+                if closest[j] <= cfg.density_range_m:
+                    count += 1
+                    mean_sum += dist_sum[j] / steps
+            density = count / max(mean_sum / count, cfg.density_min_avg_m) if count else 0.0
+            if first_coll < 0:
+                ok = True
+            else:
+                s_free = abs(v) * first_coll * cfg.dt
+                ok = v * v <= 2.0 * lim.decel_max * s_free
+            samples.append((v, w))
+            raws["heading"].append(heading)
+            raws["clearance"].append(clearance)
+            raws["velocity"].append(v)
+            raws["density"].append(density)
+            admissible.append(ok)
+
+    terms = {k: _normalise(a) for k, a in raws.items()}
+    total, best, best_total = [], -1, -math.inf
+    for i in range(len(samples)):
+        g = (cfg.weight_heading * terms["heading"][i] + cfg.weight_clearance * terms["clearance"][i]
+             + cfg.weight_velocity * terms["velocity"][i] - cfg.weight_density * terms["density"][i])
+        total.append(g)
+        if admissible[i] and g > best_total:
+            best, best_total = i, g
+    best_vw = samples[best] if best >= 0 else braking_sample(prep.window)
+    return ReferenceResult(
+        samples=np.array(samples), terms={k: np.array(a) for k, a in terms.items()},
+        raw={k: np.array(a) for k, a in raws.items()}, total=np.array(total),
+        admissible=np.array(admissible), best_index=best, best=tuple(best_vw),
+    )

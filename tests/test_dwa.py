@@ -1,0 +1,148 @@
+"""DWA planner: identical choices with the per-sample reference, spatiotemporal checks, budget."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from runtime.config import LimitsConfig
+from runtime.dwa import DWAConfig, plan, plan_coarse, prepare, random_world
+from runtime.dwa_reference import plan_reference
+
+LIM = LimitsConfig()
+CFG = DWAConfig()
+STEPS = 30
+TIMES = (np.arange(STEPS) + 1) * 0.1
+
+
+def test_vectorised_matches_reference_on_random_worlds():
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        w = random_world(rng, STEPS, 100, 5, n_blobs=10)  # 10 static obstacles + 5 tracks
+        a = plan_coarse(CFG, LIM, w["v0"], w["w0"], w["goal"], w["points"], w["obs_pos"],
+                        w["obs_radius"])
+        b = plan_reference(CFG, LIM, w["v0"], w["w0"], w["goal"], w["points"], w["obs_pos"],
+                           w["obs_radius"])
+        assert len(b.samples) == 400
+        np.testing.assert_array_equal(a.samples[:400], b.samples)
+        np.testing.assert_array_equal(a.admissible[:400], b.admissible)
+        for k in ("heading", "clearance", "velocity", "density"):
+            np.testing.assert_allclose(getattr(a, k)[:400], b.terms[k], atol=1e-6, rtol=0)
+            np.testing.assert_allclose(a.raw[k][:400], b.raw[k], atol=1e-6, rtol=0)
+        if b.best_index >= 0:
+            assert a.best_index == b.best_index
+        else:
+            assert not a.admissible_best and a.best == pytest.approx(b.best)
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.floats(-1.5, 1.5), st.floats(-1.5, 1.5))
+def test_grid_clearance_is_a_tight_lower_bound(px, py):
+    """Static clearance from the distance-transform grid ≤ exact, and within 2·cell·√2 of it."""
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-2.0, 2.0, (50, 2))
+    prep = prepare(CFG, LIM, 0.3, 0.0, pts)
+    cell = CFG.grid_cell_m
+    ix = int((px + prep.half) / cell)
+    iy = int((py + prep.half) / cell)
+    grid_d = prep.dist_grid[ix, iy]
+    exact = np.hypot(*(pts - [px, py]).T).min()
+    assert grid_d <= exact + 1e-9
+    assert grid_d >= exact - 2 * cell * math.sqrt(2) - 1e-9
+
+
+def _crossing(y0: float, vy: float, x_cross: float = 0.6) -> tuple[np.ndarray, np.ndarray]:
+    """One person walking along +y through x = x_cross; at time t at (x_cross, y0 + vy t)."""
+    pos = np.stack([np.full(STEPS, x_cross), y0 + vy * TIMES], -1)[None]
+    return pos, np.full((1, STEPS), 0.25)
+
+
+def _straight_index(res) -> int:
+    return int(np.argmin(np.abs(res.samples[:400, 1]) + 10 * np.abs(res.samples[:400, 0] - 0.3)))
+
+
+def test_crossing_obstacle_penalised_by_time_not_by_current_position():
+    cfg = replace(CFG, weight_heading=1.0, weight_velocity=0.0, weight_density=0.0)
+    goal = np.array([3.0, 0.0])
+    # going straight at 0.3 m/s reaches x = 0.6 at t = 2 s; the person is 2 m to the side now
+    # and on the path at t = 2 s
+    pos, rad = _crossing(-2.0, 1.0)
+    live = plan_coarse(cfg, LIM, 0.3, 0.0, goal, np.zeros((0, 2)), pos, rad)
+    frozen = plan_coarse(cfg, LIM, 0.3, 0.0, goal, np.zeros((0, 2)),
+                         np.repeat(pos[:, :1], STEPS, 1), rad)
+    i = _straight_index(live)
+    assert live.raw["clearance"][i] == 0.0  # collides at t ≈ 2 s
+    assert frozen.raw["clearance"][i] > 1.0 - 1e-9  # a frozen check sees nothing
+    # the person has already crossed before the robot gets there: no penalty
+    gone_pos, gone_rad = _crossing(-0.2, 2.0)  # on the path at t = 0.1 s, 3.8 m away by t = 2
+    gone = plan_coarse(cfg, LIM, 0.3, 0.0, goal, np.zeros((0, 2)), gone_pos, gone_rad)
+    assert gone.raw["clearance"][i] > 0.0
+    assert gone.admissible[i]
+
+
+def test_imminent_crossing_makes_sample_inadmissible():
+    # the person reaches the robot's path point at t = 0.1 s: cannot stop in time at 0.3 m/s
+    pos = np.stack([0.3 * TIMES, np.where(TIMES < 0.15, 0.0, 3.0)], -1)  # gone after 0.1 s
+    res = plan_coarse(CFG, LIM, 0.3, 0.0, np.array([3.0, 0.0]), np.zeros((0, 2)),
+                      pos[None], np.full((1, STEPS), 0.1))
+    i = _straight_index(res)
+    assert not res.admissible[i]
+    frozen = plan_coarse(CFG, LIM, 0.3, 0.0, np.array([3.0, 0.0]), np.zeros((0, 2)),
+                         np.repeat(pos[None, -1:], STEPS, 1), np.full((1, STEPS), 0.1))
+    assert frozen.admissible[i]
+
+
+def test_everything_blocked_returns_braking_sample():
+    ring = 0.25 * np.stack([np.cos(np.linspace(0, 2 * np.pi, 200)),
+                            np.sin(np.linspace(0, 2 * np.pi, 200))], -1)
+    res = plan(CFG, LIM, 0.3, 0.5, np.array([3.0, 0.0]), ring)
+    assert not res.admissible_best
+    assert not res.admissible.any()
+    v_lo = 0.3 - LIM.decel_max * CFG.window_dt
+    assert res.best == pytest.approx((v_lo, 0.5 - LIM.alpha_max * CFG.window_dt))
+    assert res.best_path.shape == (STEPS, 3)
+
+
+class FakeClock:
+    def __init__(self, tick: float):
+        self.t, self.tick, self.reads = 0.0, tick, 0
+
+    def __call__(self) -> float:
+        self.reads += 1
+        self.t += self.tick
+        return self.t
+
+
+def test_refinement_stops_at_deadline_and_coarse_always_completes():
+    rng = np.random.default_rng(3)
+    w = random_world(rng, STEPS, 100, 5)
+    args = (CFG, LIM, 0.2, 0.1, np.array([3.0, 1.0]), w["points"], w["obs_pos"],
+            w["obs_radius"])
+    # deadline already past: the coarse grid still completes, no refinement
+    r0 = plan(*args, deadline=-1.0, now=FakeClock(0.001))
+    assert r0.evaluated >= 400 and r0.refine_rounds == 0 and r0.budget_cut
+    # each clock read advances 1 ms: rounds end by the deadline, clock checked every round
+    clock = FakeClock(0.001)
+    r1 = plan(*args, deadline=0.010, now=clock)
+    assert 0 < r1.refine_rounds < CFG.refine_max_rounds and r1.budget_cut
+    assert clock.t <= 0.010 + 0.001
+    # no clock: a pure evaluation-count budget
+    r2 = plan(*args)
+    assert r2.refine_rounds == CFG.refine_max_rounds and not r2.budget_cut
+    assert r2.evaluated == 400 + CFG.refine_max_rounds * (CFG.refine_n**2 - 1)
+    assert r2.total[r2.best_index] >= r2.total[r2.admissible].max() - 1e-12
+
+
+def test_best_path_matches_best_sample():
+    rng = np.random.default_rng(4)
+    w = random_world(rng, STEPS, 50, 3)
+    r = plan(CFG, LIM, w["v0"], w["w0"], w["goal"], w["points"], w["obs_pos"], w["obs_radius"])
+    v, om = r.best
+    x, y, th = r.best_path[-1]
+    assert th == pytest.approx(om * 3.0)
+    assert math.hypot(x, y) <= abs(v) * 3.0 + 1e-9
