@@ -141,6 +141,13 @@ def cmd_bench_perception(args: argparse.Namespace) -> int:
     return _print_bench(bench_perception(args.frames), args.json)
 
 
+def cmd_bench_planner(args: argparse.Namespace) -> int:
+    from runtime.dwa import bench_planner
+
+    return _print_bench({"bench": "planner", **bench_planner(worlds=args.worlds, calls=args.calls)},
+                        args.json)
+
+
 def cmd_sim(args: argparse.Namespace) -> int:
     from sim_stub.sim_server import main as sim_main
 
@@ -227,6 +234,12 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--frames", type=int, default=100, help="frames to process (default 100)")
     bp.add_argument("--json", action="store_true", help="print only the JSON line")
     bp.set_defaults(func=cmd_bench_perception)
+
+    bp = bsub.add_parser("planner", help="DWA: vectorised vs per-sample reference, p99, budget")
+    bp.add_argument("--worlds", type=int, default=20, help="random worlds compared (default 20)")
+    bp.add_argument("--calls", type=int, default=10000, help="calls for the budget overshoot")
+    bp.add_argument("--json", action="store_true", help="print only the JSON line")
+    bp.set_defaults(func=cmd_bench_planner)
 
     p = sub.add_parser("sim", add_help=False,
                        help="the simulated world + base on a pty + depth on a socket (see --help)")
