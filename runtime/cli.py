@@ -84,13 +84,28 @@ def cmd_drive(args: argparse.Namespace) -> int:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    """The service's job. Planners arrive with their issues; `hold` keeps the base stopped."""
+    """The service's job: `hold` keeps the base stopped; `dwa` drives to --goal with the DWA
+    baseline through the shield."""
+    import time
+
     from runtime.app import run_job
     from runtime.drive import HoldJob
+    from runtime.dwa_job import DWAJob
 
     loaded = _load(args)
-    report, link_stats = run_job(loaded, HoldJob())
-    return _finish({**report.as_dict(), "link": link_stats}, report.exit_code)
+    if args.planner == "hold":
+        job: Any = HoldJob()
+    else:
+        if args.goal is None:
+            raise UserError("run --planner dwa: give --goal X Y (metres, odom frame: the robot"
+                            " starts at the origin facing +x)")
+        if loaded.config.depth.source == "none":
+            raise UserError(f"{loaded.config_path}: key 'depth.source': the dwa planner needs"
+                            " depth (d435 or sim), got 'none'")
+        job = DWAJob(tuple(args.goal), loaded.config, time.monotonic)
+    report, link_stats = run_job(loaded, job)
+    return _finish({**report.as_dict(), "job": job.summary(), "link": link_stats},
+                   report.exit_code)
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -192,8 +207,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("run", help="run the control loop as the service does")
     _add_config_args(p)
-    p.add_argument("--planner", choices=("hold",), default="hold",
-                   help="hold: keep the base stopped with the link, odometry and health live")
+    p.add_argument("--planner", choices=("hold", "dwa"), default="hold",
+                   help="hold: keep the base stopped with everything else live; dwa: the DWA"
+                        " baseline to --goal, through the shield")
+    p.add_argument("--goal", nargs=2, type=float, metavar=("X", "Y"),
+                   help="goal in the odom frame (m): the robot starts at the origin facing +x")
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser("drive", help="teleoperate the base: a fixed twist or a scripted list")

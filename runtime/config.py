@@ -17,6 +17,8 @@ from runtime.calibration_schema import (
     CameraMount,
     OdometryCalibration,
 )
+from runtime.dwa import DWAConfig
+from runtime.limits import LimitsConfig
 from runtime.obstacle_memory import ObstacleMemoryConfig
 from runtime.odometry_ekf import OdometryFilterConfig
 from runtime.perception import PerceptionConfig
@@ -28,10 +30,11 @@ from runtime.schema import (
     section,
     setting,
 )
+from runtime.shield import ShieldConfig
 from runtime.tracking import TrackerConfig
 
 __all__ = [
-    "CALIBRATION_TITLE", "Calibration", "CameraMount", "Config", "LoadedConfig",
+    "CALIBRATION_TITLE", "Calibration", "CameraMount", "Config", "LimitsConfig", "LoadedConfig",
     "OdometryCalibration", "load_calibration", "load_config", "render_calibration",
     "render_config",
 ]
@@ -143,29 +146,6 @@ class DepthConfig:
 
 
 @dataclass(frozen=True)
-class LimitsConfig:
-    v_max: float = setting(0.3, "maximum forward speed", "m/s", min=0.0, max=0.5)
-    v_min: float = setting(
-        -0.1, "minimum (most negative) speed; the camera cannot see behind", "m/s", min=-0.5, max=0.0
-    )
-    omega_max: float = setting(1.0, "maximum turn rate magnitude", "rad/s", min=0.0, max=4.0)
-    accel_max: float = setting(
-        0.5, "maximum linear acceleration", "m/s^2", min=0.0, max=5.0, min_exclusive=True
-    )
-    decel_max: float = setting(
-        1.0,
-        "braking deceleration the base guarantees; used for stops and braking",
-        "m/s^2",
-        min=0.0,
-        max=5.0,
-        min_exclusive=True,
-    )
-    alpha_max: float = setting(
-        2.0, "maximum angular acceleration", "rad/s^2", min=0.0, max=20.0, min_exclusive=True
-    )
-
-
-@dataclass(frozen=True)
 class Config:
     calibration_file: str = setting(
         "",
@@ -185,6 +165,8 @@ class Config:
         ObstacleMemoryConfig, "obstacle memory in odom: what left the camera's view"
     )
     tracking: TrackerConfig = section(TrackerConfig, "clusters → tracked people with velocity")
+    dwa: DWAConfig = section(DWAConfig, "the fixed-budget Dynamic Window Approach")
+    shield: ShieldConfig = section(ShieldConfig, "the safety shield that certifies every command")
     limits: LimitsConfig = section(LimitsConfig, "velocity and acceleration limits, applied last")
 
 

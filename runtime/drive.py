@@ -75,8 +75,9 @@ class DriveJob:
     def finished(self) -> bool:
         return self._finished
 
-    def step(self, now: float, odom: Odometry) -> Twist:
-        """Target for this RUNNING cycle; time since the previous RUNNING cycle counts.
+    def step(self, now: float, odom: Odometry, world: object = None) -> Twist:
+        """Target for this RUNNING cycle; time since the previous RUNNING cycle counts. The
+        script ignores the world model.
 
         The command is held for one period, so a cycle belongs to the segment containing the
         middle of that period: each segment gets round(duration / period) cycles, not ±1.
@@ -123,7 +124,7 @@ class HoldJob:
     name = "hold"
     finished = False
 
-    def step(self, now: float, odom: Odometry) -> Twist:
+    def step(self, now: float, odom: Odometry, world: object = None) -> Twist:
         return STOP
 
     def pause(self) -> None:

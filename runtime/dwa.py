@@ -47,7 +47,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from runtime.config import LimitsConfig
+from runtime.limits import LimitsConfig
 from runtime.schema import setting
 
 

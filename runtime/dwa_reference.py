@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from runtime.config import LimitsConfig
 from runtime.dwa import DWAConfig, braking_sample, prepare
+from runtime.limits import LimitsConfig
 
 
 @dataclass(frozen=True)

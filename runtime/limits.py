@@ -3,9 +3,33 @@
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
-from runtime.config import LimitsConfig
+from runtime.schema import setting
 from runtime.types import Twist
+
+
+@dataclass(frozen=True)
+class LimitsConfig:
+    v_max: float = setting(0.3, "maximum forward speed", "m/s", min=0.0, max=0.5)
+    v_min: float = setting(
+        -0.1, "minimum (most negative) speed; the camera cannot see behind", "m/s", min=-0.5, max=0.0
+    )
+    omega_max: float = setting(1.0, "maximum turn rate magnitude", "rad/s", min=0.0, max=4.0)
+    accel_max: float = setting(
+        0.5, "maximum linear acceleration", "m/s^2", min=0.0, max=5.0, min_exclusive=True
+    )
+    decel_max: float = setting(
+        1.0,
+        "braking deceleration the base guarantees; used for stops and braking",
+        "m/s^2",
+        min=0.0,
+        max=5.0,
+        min_exclusive=True,
+    )
+    alpha_max: float = setting(
+        2.0, "maximum angular acceleration", "rad/s^2", min=0.0, max=20.0, min_exclusive=True
+    )
 
 
 def _step_towards(current: float, target: float, up: float, down: float) -> float:

@@ -98,7 +98,7 @@ class Job(Protocol):
     @property
     def finished(self) -> bool: ...
 
-    def step(self, now: float, odom: Odometry) -> Twist: ...
+    def step(self, now: float, odom: Odometry, world: WorldState | None) -> Twist: ...
 
     def pause(self) -> None:
         """The loop left RUNNING; time until it is back must not count as the job's time."""
@@ -330,7 +330,7 @@ class ControlLoop:
             why = self._degraded_reason(t2, hazard)
             if why is None:
                 self._set_state(State.RUNNING, t2, "inputs fresh")
-                target = self._job.step(t2, odom)
+                target = self._job.step(t2, odom, self.world)
             else:
                 if self.state is not State.DEGRADED:
                     self._job.pause()

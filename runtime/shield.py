@@ -50,8 +50,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from runtime.config import LimitsConfig
-from runtime.limits import apply_limits
+from runtime.limits import LimitsConfig, apply_limits
 from runtime.schema import setting
 from runtime.types import Twist
 

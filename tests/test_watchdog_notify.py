@@ -76,7 +76,7 @@ class StallableJob:
         self.stall = threading.Event()
         self.release = threading.Event()
 
-    def step(self, now: float, odom: Odometry) -> Twist:
+    def step(self, now: float, odom: Odometry, world: object = None) -> Twist:
         if self.stall.is_set():
             self.release.wait()
         return Twist(0.1, 0.0)

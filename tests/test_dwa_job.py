@@ -1,0 +1,38 @@
+"""The DWA planner mode's pieces that are not the DWA or shield themselves."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from runtime.cli import main
+from runtime.dwa_job import predict_tracks_base
+from runtime.tracking import Track
+
+
+def track(tid: int, pos, vel, confirmed=True, pos_var=0.01, vel_var=0.04) -> Track:
+    cov = np.diag([pos_var, pos_var, vel_var, vel_var])
+    return Track(tid, np.array(pos, float), np.array(vel, float), 0.3, cov, 1.0, 5, confirmed)
+
+
+def test_tracks_are_predicted_at_constant_velocity_into_base_link_with_growing_sigma():
+    tracks = [track(1, (2.0, 1.0), (0.0, -1.0)), track(2, (9.0, 9.0), (0.0, 0.0), confirmed=False)]
+    pose = (1.0, 1.0, math.pi / 2)  # robot at (1, 1) facing +y in odom
+    pos, std, radii = predict_tracks_base(tracks, pose, elapsed=0.1, dt=0.5, steps=2)
+    assert pos.shape == (1, 3, 2) and std.shape == (1, 3) and radii.tolist() == [0.3]
+    # odom positions at τ = 0.1, 0.6, 1.1 s: (2, 0.9), (2, 0.4), (2, -0.1); in base_link (x fwd
+    # = odom +y, y left = odom −x): (−0.1, −1), (−0.6, −1), (−1.1, −1)
+    np.testing.assert_allclose(pos[0], [[-0.1, -1.0], [-0.6, -1.0], [-1.1, -1.0]], atol=1e-12)
+    assert np.all(np.diff(std[0]) > 0)
+    assert std[0, 0] == pytest.approx(math.sqrt(0.01 + 0.04 * 0.01))
+
+
+def test_dwa_planner_needs_a_goal_and_depth(capsys):
+    assert main(["run", "--planner", "dwa", "--set", "depth.source=sim",
+                 "--set", "depth.sim_socket=/x"]) == 2
+    assert "--goal" in capsys.readouterr().err
+    assert main(["run", "--planner", "dwa", "--goal", "1", "0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "depth.source" in err[0]
