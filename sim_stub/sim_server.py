@@ -21,6 +21,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from drivers.depth_source import D435_848x480
 from drivers.sim_depth_link import encode_frame, frame_digest
 from runtime.config import load_config
@@ -159,9 +161,23 @@ class SimWorldLink:
         if outcome.status != self.last_outcome and self.emit is not None:
             self.last_outcome = outcome.status
             self.emit({"event": "outcome", "t": now, "status": outcome.status,
-                       "collided_with": outcome.collided_with, "at_fault": outcome.at_fault})
+                       "collided_with": outcome.collided_with, "at_fault": outcome.at_fault,
+                       **self._contact(pose, truth["v"])})
         with self._lock:
             self._snapshot = (now, self.world.snapshot())
+
+    def _contact(self, pose: tuple[float, float, float], v: float) -> dict[str, Any]:
+        """Where the other body was at contact, seen from the robot: bearing 0 is straight ahead,
+        ±43.5° the edges of the camera's view. Tells a planner failure from a blind-side hit."""
+        who = self.world.outcome.collided_with or ""
+        if not who.startswith("agent "):
+            return {}
+        k = int(who.split()[1])
+        rel = self.world.crowd.positions[k] - pose[:2]
+        bearing = math.atan2(rel[1], rel[0]) - pose[2]
+        return {"robot_speed": v,
+                "bearing_deg": math.degrees(math.atan2(math.sin(bearing), math.cos(bearing))),
+                "agent_speed": float(np.hypot(*self.world.crowd.velocities[k]))}
 
     def _render_loop(self) -> None:
         deadline = time.monotonic()

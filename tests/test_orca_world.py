@@ -332,3 +332,20 @@ def test_robot_respects_acceleration_limits() -> None:
     world.step(DT, 0.3, 1.0)
     assert world.robot.v == pytest.approx(0.5 * DT)  # accel_max 0.5 m/s^2
     assert world.robot.omega == pytest.approx(2.0 * DT)  # alpha_max 2 rad/s^2
+
+
+def test_sim_reports_where_a_colliding_agent_came_from():
+    from types import SimpleNamespace
+
+    from sim_stub.sim_server import SimWorldLink
+    from sim_stub.world import Outcome
+
+    w = World(load_scenario("paper_a"), seed=1)
+    w.crowd.positions[0] = (1.0, 1.0)  # 45° to the left of a robot at the origin facing +x
+    w.crowd.velocities[0] = (0.0, -0.6)
+    w.outcome = Outcome("collision", 1.0, "agent 0", True)
+    contact = SimWorldLink._contact(SimpleNamespace(world=w), (0.0, 0.0, 0.0), 0.2)
+    assert contact["bearing_deg"] == pytest.approx(45.0)
+    assert contact["agent_speed"] == pytest.approx(0.6) and contact["robot_speed"] == 0.2
+    w.outcome = Outcome("collision", 1.0, "obstacle 2", True)
+    assert SimWorldLink._contact(SimpleNamespace(world=w), (0.0, 0.0, 0.0), 0.2) == {}
