@@ -10,7 +10,9 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -157,7 +159,7 @@ def cmd_bench_perception(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_planner(args: argparse.Namespace) -> int:
-    from runtime.dwa import bench_planner
+    from runtime.bench import bench_planner
 
     return _print_bench({"bench": "planner", **bench_planner(worlds=args.worlds, calls=args.calls)},
                         args.json)
@@ -196,6 +198,41 @@ def cmd_base_emulator(args: argparse.Namespace) -> int:
 # --- parser ------------------------------------------------------------------------------------
 
 
+def _finite_float(text: str) -> float:
+    """argparse type: a finite number (NaN or inf would reach the wheels as a command)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be finite, got {text!r}")
+    return value
+
+
+def _int_at_least(minimum: int) -> Callable[[str], int]:
+    """argparse type: an integer ≥ minimum."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be at least {minimum}, got {value}")
+        return value
+
+    return parse
+
+
+def _bench_parser(bsub: Any, name: str, help_text: str, func: Callable[[argparse.Namespace], int]
+                  ) -> argparse.ArgumentParser:
+    """A `bench` subcommand: every benchmark prints figures and ends with one JSON line."""
+    bp = bsub.add_parser(name, help=help_text)
+    bp.add_argument("--json", action="store_true", help="print only the JSON line")
+    bp.set_defaults(func=func)
+    return bp
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="safemove",
@@ -210,15 +247,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--planner", choices=("hold", "dwa"), default="hold",
                    help="hold: keep the base stopped with everything else live; dwa: the DWA"
                         " baseline to --goal, through the shield")
-    p.add_argument("--goal", nargs=2, type=float, metavar=("X", "Y"),
+    p.add_argument("--goal", nargs=2, type=_finite_float, metavar=("X", "Y"),
                    help="goal in the odom frame (m): the robot starts at the origin facing +x")
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser("drive", help="teleoperate the base: a fixed twist or a scripted list")
     _add_config_args(p)
-    p.add_argument("--twist", nargs=2, type=float, metavar=("V", "OMEGA"), default=(0.0, 0.0),
+    p.add_argument("--twist", nargs=2, type=_finite_float, metavar=("V", "OMEGA"), default=(0.0, 0.0),
                    help="body velocity: V m/s forward, OMEGA rad/s counter-clockwise")
-    p.add_argument("--duration", type=float, help="seconds to hold --twist")
+    p.add_argument("--duration", type=_finite_float, help="seconds to hold --twist")
     p.add_argument("--script", type=Path, help="YAML list of {v, omega, duration} segments")
     p.set_defaults(func=cmd_drive)
 
@@ -236,28 +273,29 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("bench", help="benchmarks; the last line of output is one JSON object")
     bsub = p.add_subparsers(dest="bench_command", required=True, metavar="WHAT")
-    bp = bsub.add_parser("loop", help="the drive loop against the emulated base")
+    bp = _bench_parser(bsub, "loop", "the drive loop against the emulated base", cmd_bench_loop)
     _add_config_args(bp)
-    bp.add_argument("--cycles", type=int, default=400, help="control cycles to run (default 400)")
-    bp.add_argument("--json", action="store_true", help="print only the JSON line")
-    bp.set_defaults(func=cmd_bench_loop)
+    bp.add_argument("--cycles", type=_int_at_least(1), default=400,
+                    help="control cycles to run (default 400)")
 
-    bp = bsub.add_parser("sim", help="depth rendering, world stepping and playback speed")
-    bp.add_argument("--frames", type=int, default=60, help="frames to render (default 60)")
-    bp.add_argument("--steps", type=int, default=500, help="world steps (default 500)")
-    bp.add_argument("--json", action="store_true", help="print only the JSON line")
-    bp.set_defaults(func=cmd_bench_sim)
+    bp = _bench_parser(bsub, "sim", "depth rendering, world stepping and playback speed",
+                       cmd_bench_sim)
+    bp.add_argument("--frames", type=_int_at_least(1), default=60,
+                    help="frames to render (default 60)")
+    bp.add_argument("--steps", type=_int_at_least(1), default=500,
+                    help="world steps (default 500)")
 
-    bp = bsub.add_parser("perception", help="world-model stages per frame at 848x480")
-    bp.add_argument("--frames", type=int, default=100, help="frames to process (default 100)")
-    bp.add_argument("--json", action="store_true", help="print only the JSON line")
-    bp.set_defaults(func=cmd_bench_perception)
+    bp = _bench_parser(bsub, "perception", "world-model stages per frame at 848x480",
+                       cmd_bench_perception)
+    bp.add_argument("--frames", type=_int_at_least(2), default=100,
+                    help="frames to process (default 100; the first is not timed)")
 
-    bp = bsub.add_parser("planner", help="DWA: vectorised vs per-sample reference, p99, budget")
-    bp.add_argument("--worlds", type=int, default=20, help="random worlds compared (default 20)")
-    bp.add_argument("--calls", type=int, default=10000, help="calls for the budget overshoot")
-    bp.add_argument("--json", action="store_true", help="print only the JSON line")
-    bp.set_defaults(func=cmd_bench_planner)
+    bp = _bench_parser(bsub, "planner", "DWA: vectorised vs per-sample reference, p99, budget",
+                       cmd_bench_planner)
+    bp.add_argument("--worlds", type=_int_at_least(1), default=20,
+                    help="random worlds compared (default 20)")
+    bp.add_argument("--calls", type=_int_at_least(1), default=10000,
+                    help="calls for the budget overshoot (default 10000)")
 
     p = sub.add_parser("sim", add_help=False,
                        help="the simulated world + base on a pty + depth on a socket (see --help)")
@@ -268,9 +306,10 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config_args(p)
     p.add_argument("scenario", help="a shipped scenario name or a scenario YAML file")
     p.add_argument("-o", "--output", type=Path, required=True, help="output file (.db3)")
-    p.add_argument("--frames", type=int, default=90, help="frames to record (default 90)")
-    p.add_argument("--fps", type=float, default=30.0, help="frame rate (default 30)")
-    p.add_argument("--twist", nargs=2, type=float, metavar=("V", "OMEGA"), default=(0.2, 0.0),
+    p.add_argument("--frames", type=_int_at_least(1), default=90,
+                   help="frames to record (default 90)")
+    p.add_argument("--fps", type=_finite_float, default=30.0, help="frame rate (default 30)")
+    p.add_argument("--twist", nargs=2, type=_finite_float, metavar=("V", "OMEGA"), default=(0.2, 0.0),
                    help="the robot's body velocity while recording (default 0.2 0)")
     p.add_argument("--seed", type=int, default=None, help="episode seed (default: the scenario's)")
     p.add_argument("--noise", action="store_true", help="D435-like noise and edge dropout")

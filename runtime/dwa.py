@@ -40,7 +40,6 @@ admissible the result is the strongest braking sample in the window with admissi
 from __future__ import annotations
 
 import math
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -389,86 +388,3 @@ def plan_coarse(cfg: DWAConfig, lim: LimitsConfig, v0: float, omega0: float, goa
 
 
 # --- benchmark helpers ---------------------------------------------------------------------------
-
-
-def random_world(rng: np.random.Generator, steps: int, n_points: int, n_tracks: int,
-                 n_blobs: int = 10, dt: float = 0.1) -> dict:
-    """A random planning problem in base_link: static points in `n_blobs` tight blobs centred in
-    distinct density cells 0.7–2.2 m away (so, with the default density_cell_m, one density
-    obstacle each), tracks starting 1–3 m away walking at up to ~1 m/s with a radius growing with
-    time, a goal ahead, a current twist inside the velocity box."""
-    cell = 0.5
-    cand = [(i, j) for i in range(-5, 6) for j in range(-5, 6)
-            if 0.7 <= math.hypot((i + 0.5) * cell, (j + 0.5) * cell) <= 2.2]
-    pick = rng.choice(len(cand), size=min(n_blobs, len(cand)), replace=False)
-    centres = (np.array([cand[p] for p in pick], dtype=float) + 0.5) * cell
-    pts = centres[rng.integers(0, len(centres), n_points)] + rng.uniform(-0.1, 0.1, (n_points, 2))
-    t = (np.arange(steps) + 1) * dt
-    ang = rng.uniform(-math.pi, math.pi, n_tracks)
-    p0 = rng.uniform(1.0, 3.0, (n_tracks, 1)) * np.stack([np.cos(ang), np.sin(ang)], -1)
-    vel = rng.normal(0, 0.5, (n_tracks, 2))
-    pos = p0[:, None, :] + vel[:, None, :] * t[None, :, None]
-    rad = rng.uniform(0.2, 0.3, (n_tracks, 1)) + 0.05 * t[None, :]
-    goal = rng.uniform([1.0, -3.0], [5.0, 3.0])
-    return {"v0": float(rng.uniform(0.0, 0.3)), "w0": float(rng.uniform(-0.8, 0.8)),
-            "goal": goal, "points": pts, "obs_pos": pos, "obs_radius": rad}
-
-
-def bench_planner(worlds: int = 20, calls: int = 10_000, p99_calls: int = 500,
-                  seed: int = 0) -> dict:
-    """(a) vectorised vs reference, coarse 400×30 with 15 obstacles (10 static blobs of points,
-    5 tracks): time ratio and identical choices; (b) 800 samples × 30 steps, 20 tracks, 500
-    points: p99 per call (coarse only); (c) `calls` budgeted calls on time.monotonic (default
-    config, 20 tracks, 500 points): worst overshoot of the deadline."""
-    from dataclasses import replace
-
-    from runtime.dwa_reference import plan_reference
-
-    lim = LimitsConfig()
-    cfg = DWAConfig()
-    rng = np.random.default_rng(seed)
-    same, t_vec, t_ref, max_term_err = 0, 0.0, 0.0, 0.0
-    for _ in range(worlds):
-        w = random_world(rng, 30, 100, 5, n_blobs=10)
-        t0 = time.perf_counter()
-        a = plan_coarse(cfg, lim, w["v0"], w["w0"], w["goal"], w["points"], w["obs_pos"],
-                        w["obs_radius"])
-        t1 = time.perf_counter()
-        b = plan_reference(cfg, lim, w["v0"], w["w0"], w["goal"], w["points"], w["obs_pos"],
-                           w["obs_radius"])
-        t2 = time.perf_counter()
-        t_vec += t1 - t0
-        t_ref += t2 - t1
-        same += int(a.best_index == b.best_index or (b.best_index < 0 and a.best == b.best))
-        for k in ("heading", "clearance", "velocity", "density"):
-            max_term_err = max(max_term_err, float(np.abs(getattr(a, k)[:400] - b.terms[k]).max()))
-    out: dict = {"bench": "planner", "a_worlds": worlds, "a_identical_choices": same,
-                 "a_vectorised_ms": 1e3 * t_vec / worlds, "a_reference_ms": 1e3 * t_ref / worlds,
-                 "a_speedup": t_ref / t_vec, "a_max_term_err": max_term_err}
-    cfg800 = replace(cfg, n_v=40, n_omega=20)
-    lat = []
-    for i in range(p99_calls):
-        w = random_world(rng, 30, 500, 20, n_blobs=40)
-        t0 = time.perf_counter()
-        plan_coarse(cfg800, lim, w["v0"], w["w0"], w["goal"], w["points"], w["obs_pos"],
-                    w["obs_radius"])
-        lat.append(time.perf_counter() - t0)
-    lat_ms = 1e3 * np.array(lat)
-    out.update({"b_samples": 800, "b_p50_ms": float(np.percentile(lat_ms, 50)),
-                "b_p99_ms": float(np.percentile(lat_ms, 99)), "b_max_ms": float(lat_ms.max())})
-    pool = [random_world(rng, 30, 500, 20, n_blobs=40) for _ in range(50)]
-    over, rounds, cuts = [], 0, 0
-    for i in range(calls):
-        w = pool[i % len(pool)]
-        t0 = time.monotonic()
-        r = plan(cfg, lim, w["v0"], w["w0"], w["goal"], w["points"], w["obs_pos"],
-                 w["obs_radius"], deadline=t0 + cfg.budget_s, now=time.monotonic)
-        over.append(time.monotonic() - (t0 + cfg.budget_s))
-        rounds += r.refine_rounds
-        cuts += int(r.budget_cut)
-    over_ms = 1e3 * np.array(over)
-    out.update({"c_calls": calls, "c_budget_ms": 1e3 * cfg.budget_s,
-                "c_max_overshoot_ms": float(over_ms.max()),
-                "c_p99_end_minus_deadline_ms": float(np.percentile(over_ms, 99)),
-                "c_mean_rounds": rounds / calls, "c_budget_cut_share": cuts / calls})
-    return out

@@ -135,3 +135,26 @@ def plan_reference(cfg: DWAConfig, lim: LimitsConfig, v0: float, omega0: float, 
         raw={k: np.array(a) for k, a in raws.items()}, total=np.array(total),
         admissible=np.array(admissible), best_index=best, best=tuple(best_vw),
     )
+
+
+def random_world(rng: np.random.Generator, steps: int, n_points: int, n_tracks: int,
+                 n_blobs: int = 10, dt: float = 0.1) -> dict:
+    """A random planning problem in base_link: static points in `n_blobs` tight blobs centred in
+    distinct density cells 0.7–2.2 m away (so, with the default density_cell_m, one density
+    obstacle each), tracks starting 1–3 m away walking at up to ~1 m/s with a radius growing with
+    time, a goal ahead, a current twist inside the velocity box."""
+    cell = 0.5
+    cand = [(i, j) for i in range(-5, 6) for j in range(-5, 6)
+            if 0.7 <= math.hypot((i + 0.5) * cell, (j + 0.5) * cell) <= 2.2]
+    pick = rng.choice(len(cand), size=min(n_blobs, len(cand)), replace=False)
+    centres = (np.array([cand[p] for p in pick], dtype=float) + 0.5) * cell
+    pts = centres[rng.integers(0, len(centres), n_points)] + rng.uniform(-0.1, 0.1, (n_points, 2))
+    t = (np.arange(steps) + 1) * dt
+    ang = rng.uniform(-math.pi, math.pi, n_tracks)
+    p0 = rng.uniform(1.0, 3.0, (n_tracks, 1)) * np.stack([np.cos(ang), np.sin(ang)], -1)
+    vel = rng.normal(0, 0.5, (n_tracks, 2))
+    pos = p0[:, None, :] + vel[:, None, :] * t[None, :, None]
+    rad = rng.uniform(0.2, 0.3, (n_tracks, 1)) + 0.05 * t[None, :]
+    goal = rng.uniform([1.0, -3.0], [5.0, 3.0])
+    return {"v0": float(rng.uniform(0.0, 0.3)), "w0": float(rng.uniform(-0.8, 0.8)),
+            "goal": goal, "points": pts, "obs_pos": pos, "obs_radius": rad}

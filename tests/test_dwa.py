@@ -11,8 +11,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from runtime.config import LimitsConfig
-from runtime.dwa import DWAConfig, plan, plan_coarse, prepare, random_world
-from runtime.dwa_reference import plan_reference
+from runtime.dwa import DWAConfig, plan, plan_coarse, prepare
+from runtime.dwa_reference import plan_reference, random_world
 
 LIM = LimitsConfig()
 CFG = DWAConfig()

@@ -1,0 +1,29 @@
+"""Numbers on the command line: NaN/inf never reach a command, counts that make no sense are
+refused by the parser (one line, exit 2) before any device or benchmark starts."""
+
+from __future__ import annotations
+
+import pytest
+
+from runtime.cli import main
+
+
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        (["drive", "--twist", "nan", "0", "--duration", "1"], "--twist: must be finite"),
+        (["drive", "--twist", "0.1", "0", "--duration", "inf"], "--duration: must be finite"),
+        (["run", "--planner", "dwa", "--goal", "1", "nan"], "--goal: must be finite"),
+        (["record", "paper_a", "-o", "x.db3", "--fps", "inf"], "--fps: must be finite"),
+        (["record", "paper_a", "-o", "x.db3", "--frames", "0"], "--frames: must be at least 1"),
+        (["bench", "perception", "--frames", "1"], "--frames: must be at least 2"),
+        (["bench", "loop", "--cycles", "0"], "--cycles: must be at least 1"),
+        (["bench", "planner", "--worlds", "zero"], "--worlds: not an integer"),
+    ],
+)
+def test_bad_numbers_are_refused_by_the_parser(args, needle, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(args)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert needle in err and "Traceback" not in err
