@@ -27,8 +27,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
-from scipy.spatial import ConvexHull, QhullError
 
 from runtime.schema import setting
 
@@ -72,24 +72,35 @@ def _sample_path(path: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
 
 def _widths(samples: np.ndarray, centres: np.ndarray, radii: np.ndarray, band: float,
             cap: float) -> tuple[np.ndarray, np.ndarray]:
-    """centres (K, N, 2) and radii (K, N) or (N,): left/right free width per sample (K,)."""
+    """Left/right free width per sample (K,) for discs with centres (N, 2) (the same for every
+    sample) or (K, N, 2) (per sample), radii (N,) or (K, N). Only the few discs that meet a
+    strip get the extent computation."""
     k = len(samples)
     left = np.full(k, cap)
     right = np.full(k, cap)
-    if centres.shape[1] == 0:
+    if centres.shape[-2] == 0:
         return left, right
     th = samples[:, 2]
     t = np.stack([np.cos(th), np.sin(th)], axis=1)  # (K, 2)
-    n = np.stack([-np.sin(th), np.cos(th)], axis=1)
-    d = centres - samples[:, None, :2]
-    a = np.einsum("knd,kd->kn", d, n)
-    c = np.abs(np.einsum("knd,kd->kn", d, t))
-    r = np.broadcast_to(radii, a.shape)
-    meet = c <= r + band
-    e = np.sqrt(np.maximum(r**2 - np.maximum(c - band, 0.0) ** 2, 0.0))
-    lv = np.where(meet & (a + e >= 0), np.maximum(a - e, 0.0), np.inf)
-    rv = np.where(meet & (a - e <= 0), np.maximum(-a - e, 0.0), np.inf)
-    return np.minimum(left, lv.min(axis=1)), np.minimum(right, rv.min(axis=1))
+    n = np.stack([-t[:, 1], t[:, 0]], axis=1)
+    s_t = (samples[:, :2] * t).sum(axis=1)
+    s_n = (samples[:, :2] * n).sum(axis=1)
+    if centres.ndim == 2:  # (q − s)·t for all pairs as one (K, 2) × (2, N) product
+        along = t @ centres.T - s_t[:, None]
+    else:
+        along = np.einsum("knd,kd->kn", centres, t) - s_t[:, None]
+    c = np.abs(along)
+    r = np.broadcast_to(radii, c.shape)
+    kk, nn = np.nonzero(c <= r + band)
+    if not len(kk):
+        return left, right
+    q = centres[nn] if centres.ndim == 2 else centres[kk, nn]
+    a = (q * n[kk]).sum(axis=1) - s_n[kk]
+    rm = r[kk, nn]
+    e = np.sqrt(np.maximum(rm**2 - np.maximum(c[kk, nn] - band, 0.0) ** 2, 0.0))
+    np.minimum.at(left, kk, np.where(a + e >= 0, np.maximum(a - e, 0.0), np.inf))
+    np.minimum.at(right, kk, np.where(a - e <= 0, np.maximum(-a - e, 0.0), np.inf))
+    return left, right
 
 
 def safe_corridor(path: np.ndarray, points: np.ndarray, track_positions: np.ndarray | None,
@@ -107,8 +118,7 @@ def safe_corridor(path: np.ndarray, points: np.ndarray, track_positions: np.ndar
         lo = samples[:, :2].min(axis=0) - cap - cfg.band - cfg.point_radius
         hi = samples[:, :2].max(axis=0) + cap + cfg.band + cfg.point_radius
         pts = pts[np.all((pts >= lo) & (pts <= hi), axis=1)]
-    left, right = _widths(samples, np.broadcast_to(pts, (len(samples),) + pts.shape),
-                          np.full(len(pts), cfg.point_radius), cfg.band, cap)
+    left, right = _widths(samples, pts, np.full(len(pts), cfg.point_radius), cfg.band, cap)
     if track_positions is not None and len(track_positions):
         tp = np.asarray(track_positions, dtype=float)
         tp = tp[:, np.minimum(row, tp.shape[1] - 1)]  # (T, K, 2)
@@ -123,12 +133,12 @@ def safe_corridor(path: np.ndarray, points: np.ndarray, track_positions: np.ndar
 
 
 def _hull(pts: np.ndarray) -> np.ndarray:
+    """Counter-clockwise convex hull (OpenCV's, y up); the distinct points if degenerate."""
+    idx = cv2.convexHull(pts.astype(np.float32), clockwise=False, returnPoints=False).ravel()
+    hull = pts[idx]
+    if len(hull) >= 3:
+        x, y = hull[:, 0], hull[:, 1]
+        if 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))) > 1e-12:
+            return hull
     _, first = np.unique(np.round(pts, 12), axis=0, return_index=True)
-    distinct = pts[np.sort(first)]
-    if len(distinct) < 3:
-        return distinct
-    try:
-        hull = ConvexHull(distinct)
-    except QhullError:  # collinear
-        return distinct
-    return distinct[hull.vertices]
+    return pts[np.sort(first)]

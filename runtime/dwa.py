@@ -83,8 +83,10 @@ class DWAConfig:
                                  min=0.005, max=0.2)
     budget_s: float = setting(0.004, "stage budget: refinement stops by this time", "s",
                               min=0.0, max=1.0)
-    chunk_elems: int = setting(200_000, "samples×steps×obstacles per vectorised chunk (bounds"
-                               " temporaries)", min=1000)
+    block_samples: int = setting(400, "the coarse grid is evaluated in interleaved blocks of this"
+                                 " many samples; the deadline is checked between blocks", min=1)
+    chunk_elems: int = setting(100_000, "obstacles×steps×samples per vectorised group (keeps each"
+                               " group's float32 distances in cache)", min=1000)
 
 
 @dataclass(frozen=True)
@@ -115,10 +117,26 @@ class Prepared:
     steps: int
     times: np.ndarray  # (steps,) t_k = (k+1)·dt
     r_eff: float
-    half: float  # grid half size; origin of the grid at (-half, -half)
-    n_cells: int
-    dist_grid: np.ndarray | None  # (n, n) float64 conservative distance (m) to the nearest point
+    coarse: np.ndarray  # (n_v·n_ω, 2) the coarse grid, v-major
+    coarse_x: np.ndarray  # (steps, n_v·n_ω) float32 rollout of the coarse grid
+    coarse_y: np.ndarray
+    step_lo: np.ndarray  # (steps, 2) box holding step k of every window velocity's rollout
+    step_hi: np.ndarray
+    origin: tuple[float, float]  # base_link position of the grid's cell (0, 0) corner
+    shape: tuple[int, int]  # grid cells along x, y
+    dist_grid: np.ndarray | None  # (nx, ny) float32 conservative distance (m) to the nearest point
     clusters: np.ndarray  # (C, 2) static obstacles for density
+
+    def cell_index(self, x: float, y: float, cell: float) -> tuple[int, int]:
+        """The grid cell holding (x, y), clamped to the grid (the reference's per-point lookup)."""
+        ix = min(max(int((x - self.origin[0]) / cell), 0), self.shape[0] - 1)
+        iy = min(max(int((y - self.origin[1]) / cell), 0), self.shape[1] - 1)
+        return ix, iy
+
+    def box_distance(self, p: np.ndarray) -> np.ndarray:
+        """Distance from points p (..., steps, 2) at each step to that step's rollout box."""
+        gap = np.maximum(np.maximum(self.step_lo - p, p - self.step_hi), 0.0)
+        return np.hypot(gap[..., 0], gap[..., 1])
 
 
 def dynamic_window(cfg: DWAConfig, lim: LimitsConfig, v0: float, w0: float
@@ -140,12 +158,102 @@ def braking_sample(window: tuple[float, float, float, float]) -> tuple[float, fl
     return min(max(0.0, v_lo), v_hi), min(max(0.0, w_lo), w_hi)
 
 
+def grid_spacing(cfg: DWAConfig, window: tuple[float, float, float, float]
+                 ) -> tuple[float, float]:
+    """Coarse-grid spacing (dv, dω); a single sample along an axis spans the whole window."""
+    v_lo, v_hi, w_lo, w_hi = window
+    return (v_hi - v_lo) / max(cfg.n_v - 1, 1), (w_hi - w_lo) / max(cfg.n_omega - 1, 1)
+
+
+def _axes(cfg: DWAConfig, window: tuple[float, float, float, float]
+          ) -> tuple[np.ndarray, np.ndarray]:
+    v_lo, v_hi, w_lo, w_hi = window
+    return np.linspace(v_lo, v_hi, cfg.n_v), np.linspace(w_lo, w_hi, cfg.n_omega)
+
+
 def coarse_samples(cfg: DWAConfig, window: tuple[float, float, float, float]) -> np.ndarray:
     """(n_v·n_ω, 2), v-major order (the reference loops in the same order)."""
-    v_lo, v_hi, w_lo, w_hi = window
-    vs = np.linspace(v_lo, v_hi, cfg.n_v)
-    ws = np.linspace(w_lo, w_hi, cfg.n_omega)
+    vs, ws = _axes(cfg, window)
     return np.stack(np.meshgrid(vs, ws, indexing="ij"), axis=-1).reshape(-1, 2)
+
+
+def _unit_arcs(omegas: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Position per unit speed after time t on an arc of rate ω: (sin ωt/ω, (1 − cos ωt)/ω),
+    each (steps, n); the straight-line limit where |ω| < 1e-9."""
+    th = times[:, None] * omegas
+    straight = np.abs(omegas) < 1e-9
+    inv = 1.0 / np.where(straight, 1.0, omegas)
+    ux = np.where(straight, times[:, None], np.sin(th) * inv)
+    uy = np.where(straight, 0.5 * times[:, None] ** 2 * omegas, (1.0 - np.cos(th)) * inv)
+    return ux, uy
+
+
+def rollout(samples: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Exact unicycle arcs: x, y, θ each (steps, K) (samples along the contiguous axis), in the
+    dtype of `times`."""
+    v = samples[:, 0].astype(times.dtype)
+    w = samples[:, 1].astype(times.dtype)
+    ux, uy = _unit_arcs(w, times)
+    return ux * v, uy * v, times[:, None] * w
+
+
+def _coarse_rollout(cfg: DWAConfig, window: tuple[float, float, float, float],
+                    times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The coarse grid's rollout, float32 (steps, n_v·n_ω): the arcs depend on ω only and
+    scale with v, so n_ω arcs are computed, not n_v·n_ω."""
+    vs, ws = _axes(cfg, window)
+    ux, uy = _unit_arcs(ws.astype(np.float32), times.astype(np.float32))
+    v = vs.astype(np.float32)[None, :, None]
+    steps = len(times)
+    return ((ux[:, None, :] * v).reshape(steps, -1), (uy[:, None, :] * v).reshape(steps, -1))
+
+
+def _step_boxes(cfg: DWAConfig, window: tuple[float, float, float, float], times: np.ndarray,
+                cx: np.ndarray, cy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per step, an axis-aligned box holding that step's point for EVERY velocity in the window:
+    the coarse grid's box grown by how far a window velocity's point can be from the nearest
+    coarse sample's (|∂p/∂v| ≤ t, |∂p/∂ω| ≤ |v|·t²/2), plus float32 rounding."""
+    dv, dw = grid_spacing(cfg, window)
+    grow = times * dv + max(abs(window[0]), abs(window[1])) * times**2 * 0.5 * dw + 1e-4
+    lo = np.stack([cx.min(axis=1), cy.min(axis=1)], -1).astype(np.float64) - grow[:, None]
+    hi = np.stack([cx.max(axis=1), cy.max(axis=1)], -1).astype(np.float64) + grow[:, None]
+    return lo, hi
+
+
+def _distance_grid(points: np.ndarray, lo: np.ndarray, shape: tuple[int, int], cell: float
+                   ) -> np.ndarray | None:
+    """Conservative distance (m) from each cell to the nearest point: the exact transform of the
+    occupied cells minus cell·√2 (a point and a query may each sit anywhere in their cells)."""
+    ij = np.floor((points - lo) / cell).astype(np.int64)
+    inside = (ij[:, 0] >= 0) & (ij[:, 1] >= 0) & (ij[:, 0] < shape[0]) & (ij[:, 1] < shape[1])
+    ij = ij[inside]
+    if not len(ij):
+        return None
+    occ = np.full(shape, 255, np.uint8)
+    occ[ij[:, 0], ij[:, 1]] = 0  # index [ix, iy]
+    edt = cv2.distanceTransform(occ, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    edt *= cell
+    edt -= cell * math.sqrt(2.0)
+    return edt
+
+
+def _density_clusters(cfg: DWAConfig, points: np.ndarray, reach: float) -> np.ndarray:
+    """Static points within reach + range, one obstacle per occupied density cell (at its
+    points' mean), at most density_max_static of them, the nearest first kept."""
+    near = (points * points).sum(axis=1) <= (reach + cfg.density_range_m + cfg.density_cell_m)**2
+    p = points[near]
+    if not len(p):
+        return np.zeros((0, 2))
+    cij = np.floor(p / cfg.density_cell_m).astype(np.int64)
+    packed = (cij[:, 0] << 32) + (cij[:, 1] & 0xFFFFFFFF)
+    _, inv, counts = np.unique(packed, return_inverse=True, return_counts=True)
+    inv = inv.ravel()
+    clusters = np.stack([np.bincount(inv, p[:, 0], len(counts)),
+                         np.bincount(inv, p[:, 1], len(counts))], axis=-1) / counts[:, None]
+    if len(clusters) > cfg.density_max_static:
+        r2 = (clusters * clusters).sum(axis=1)
+        clusters = clusters[np.sort(np.argsort(r2, kind="stable")[: cfg.density_max_static])]
+    return clusters
 
 
 def prepare(cfg: DWAConfig, lim: LimitsConfig, v0: float, w0: float, points: np.ndarray
@@ -154,55 +262,24 @@ def prepare(cfg: DWAConfig, lim: LimitsConfig, v0: float, w0: float, points: np.
     steps = max(1, round(cfg.horizon_s / cfg.dt))
     times = (np.arange(steps) + 1) * cfg.dt
     r_eff = cfg.robot_radius_m + cfg.safety_margin_m
-    reach = max(abs(window[0]), abs(window[1])) * float(times[-1])
     cell = cfg.grid_cell_m
-    half = reach + cfg.clearance_cap_m + r_eff + 2.0 * cell
-    n = math.ceil(2.0 * half / cell)
+    cx, cy = _coarse_rollout(cfg, window, times)
+    step_lo, step_hi = _step_boxes(cfg, window, times, cx, cy)
+    # every point within clearance_cap + r_eff of any rollout point falls inside the grid, so
+    # the capped clearance never misses one
+    margin = cfg.clearance_cap_m + r_eff + 2.0 * cell
+    lo = step_lo.min(axis=0) - margin
+    hi = step_hi.max(axis=0) + margin
+    shape = (math.ceil((hi[0] - lo[0]) / cell), math.ceil((hi[1] - lo[1]) / cell))
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-    dist_grid = None
-    if len(pts):
-        ij = np.floor((pts + half) / cell).astype(np.int64)
-        inside = (ij >= 0).all(1) & (ij < n).all(1)
-        ij = ij[inside]
-        if len(ij):
-            occ = np.full((n, n), 255, np.uint8)
-            occ[ij[:, 0], ij[:, 1]] = 0  # index [ix, iy]
-            edt = cv2.distanceTransform(occ, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-            dist_grid = edt.astype(np.float64) * cell - cell * math.sqrt(2.0)
-    # density obstacles: static points clustered on a coarse grid, within reach + range
-    clusters = np.zeros((0, 2))
-    if len(pts):
-        near = np.hypot(pts[:, 0], pts[:, 1]) <= reach + cfg.density_range_m + cfg.density_cell_m
-        p = pts[near]
-        if len(p):
-            cij = np.floor(p / cfg.density_cell_m).astype(np.int64)
-            packed = (cij[:, 0] << 32) + (cij[:, 1] & 0xFFFFFFFF)
-            _, inv, counts = np.unique(packed, return_inverse=True, return_counts=True)
-            sums = np.zeros((len(counts), 2))
-            np.add.at(sums, inv.ravel(), p)
-            clusters = sums / counts[:, None]
-            if len(clusters) > cfg.density_max_static:
-                r2 = (clusters * clusters).sum(axis=1)
-                keep = np.sort(np.argsort(r2, kind="stable")[: cfg.density_max_static])
-                clusters = clusters[keep]
-    return Prepared(window, steps, times, r_eff, half, n, dist_grid, clusters)
+    dist_grid = _distance_grid(pts, lo, shape, cell) if len(pts) else None
+    reach = max(abs(window[0]), abs(window[1])) * float(times[-1])
+    clusters = _density_clusters(cfg, pts, reach) if len(pts) else np.zeros((0, 2))
+    return Prepared(window, steps, times, r_eff, coarse_samples(cfg, window), cx, cy, step_lo,
+                    step_hi, (float(lo[0]), float(lo[1])), shape, dist_grid, clusters)
 
 
 # --- vectorised evaluation -----------------------------------------------------------------------
-
-
-def rollout(samples: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Exact unicycle arcs: x, y, θ each (steps, K) (samples along the contiguous axis)."""
-    v = samples[:, 0]
-    w = samples[:, 1]
-    t = times[:, None]
-    th = t * w
-    straight = np.abs(w) < 1e-9
-    ws = np.where(straight, 1.0, w)
-    r = v / ws
-    x = np.where(straight, t * v, r * np.sin(th))
-    y = np.where(straight, 0.5 * (t * t) * (v * w), r * (1.0 - np.cos(th)))
-    return x, y, th
 
 
 def _wrap(a: np.ndarray) -> np.ndarray:
@@ -210,75 +287,102 @@ def _wrap(a: np.ndarray) -> np.ndarray:
 
 
 class _Evaluator:
-    """Raw terms for batches of samples against one prepared world."""
+    """Raw terms for batches of samples against one prepared world.
+
+    float32 in the hot part (millimetres at tens of metres; half the memory traffic of
+    float64). Obstacles that cannot matter are dropped up front, exactly: one farther than
+    density_range from every step's rollout box never counts for density, and a track whose gap
+    to that box stays above clearance_cap never changes the capped clearance or admissibility.
+    The rest are processed in groups sized so that a group's (group, steps, samples) distances
+    stay in cache (cfg.chunk_elems)."""
 
     def __init__(self, cfg: DWAConfig, lim: LimitsConfig, prep: Prepared, goal: np.ndarray,
                  obs_pos: np.ndarray, obs_radius: np.ndarray):
         self.cfg, self.lim, self.prep = cfg, lim, prep
         self.goal = np.asarray(goal, dtype=np.float64)
+        self.times = prep.times.astype(np.float32)
         steps = prep.steps
-        obs_pos = np.asarray(obs_pos, dtype=np.float64).reshape(-1, steps, 2)
-        obs_radius = np.asarray(obs_radius, dtype=np.float64).reshape(-1, steps)
-        self.n_tracks = len(obs_pos)
+        self.ones = np.ones(steps, np.float32)
+        pos = np.asarray(obs_pos, dtype=np.float64).reshape(-1, steps, 2)
+        reach_r = np.asarray(obs_radius, dtype=np.float64).reshape(-1, steps) + prep.r_eff
+        far = prep.box_distance(pos)
+        keep = (far <= np.maximum(cfg.density_range_m, reach_r + cfg.clearance_cap_m)).any(1)
+        pos, reach_r = pos[keep].astype(np.float32), reach_r[keep].astype(np.float32)
         c = prep.clusters
-        # density/clearance obstacles (N, steps): tracks first, then static clusters (fixed)
-        self.ox = np.concatenate([obs_pos[:, :, 0], np.repeat(c[:, 0:1], steps, 1)])[:, :, None]
-        self.oy = np.concatenate([obs_pos[:, :, 1], np.repeat(c[:, 1:2], steps, 1)])[:, :, None]
-        self.orad = obs_radius[:, :, None]  # (T, steps, 1)
+        if len(c):
+            c = c[(prep.box_distance(c[:, None, :]) <= cfg.density_range_m).any(axis=1)]
+        c = c.astype(np.float32)
+        # (N, steps, 1) obstacle centres: tracks first, then static clusters; reach_r (T, steps, 1)
+        # is the centre distance below which a track blocks the step
+        self.ox = np.concatenate([pos[:, :, 0], np.repeat(c[:, 0:1], steps, 1)])[:, :, None]
+        self.oy = np.concatenate([pos[:, :, 1], np.repeat(c[:, 1:2], steps, 1)])[:, :, None]
+        self.reach_r = reach_r[:, :, None]
+        if prep.dist_grid is not None:
+            self.grid_flat = prep.dist_grid.ravel() - np.float32(prep.r_eff)
 
-    def evaluate(self, samples: np.ndarray) -> dict[str, np.ndarray]:
+    def _static_gap(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Gap to the static points per rollout point: one flat grid lookup each."""
+        prep = self.prep
+        if prep.dist_grid is None:
+            return np.full(x.shape, np.inf, np.float32)
+        nx, ny = prep.shape
+        inv = np.float32(1.0 / self.cfg.grid_cell_m)
+        ix = ((x - np.float32(prep.origin[0])) * inv).astype(np.int32)
+        iy = ((y - np.float32(prep.origin[1])) * inv).astype(np.int32)
+        np.clip(ix, 0, nx - 1, out=ix)
+        np.clip(iy, 0, ny - 1, out=iy)
+        ix *= ny
+        ix += iy
+        return self.grid_flat.take(ix)
+
+    def evaluate(self, samples: np.ndarray, x: np.ndarray | None = None,
+                 y: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """Raw terms of `samples`; x, y: their rollout when already known (the coarse grid)."""
         cfg, prep = self.cfg, self.prep
-        x, y, th = rollout(samples, prep.times)  # (S, K)
+        if x is None or y is None:
+            x, y, _ = rollout(samples, self.times)  # (steps, K) float32
         k_n = len(samples)
         steps = prep.steps
-        gx, gy = self.goal
-        ang = np.arctan2(gy - y[-1], gx - x[-1]) - th[-1]
+        v = samples[:, 0]
+        ang = (np.arctan2(self.goal[1] - y[-1].astype(np.float64),
+                          self.goal[0] - x[-1].astype(np.float64))
+               - samples[:, 1] * prep.times[-1])
         heading = np.pi - np.abs(_wrap(ang))
-        if prep.dist_grid is not None:  # static gap per step: one grid lookup per point
-            n = prep.n_cells
-            inv = 1.0 / cfg.grid_cell_m
-            ix = ((x + prep.half) * inv).astype(np.intp)  # x + half > 0 inside the grid
-            iy = ((y + prep.half) * inv).astype(np.intp)
-            np.clip(ix, 0, n - 1, out=ix)
-            np.clip(iy, 0, n - 1, out=iy)
-            gap = prep.dist_grid[ix, iy]
-            gap -= prep.r_eff
-        else:
-            gap = np.full(x.shape, np.inf)
-        n_obs = self.ox.shape[0]
-        nt = self.n_tracks
+        gap = self._static_gap(x, y)
+        n_obs, n_t = len(self.ox), len(self.reach_r)
         density = np.zeros(k_n)
         if n_obs:
-            chunk = max(1, cfg.chunk_elems // (steps * n_obs))
-            rng = cfg.density_range_m
-            for a in range(0, k_n, chunk):
-                b = min(k_n, a + chunk)
-                d = x[None, :, a:b] - self.ox  # (N, S, k)
-                dy = y[None, :, a:b] - self.oy
-                np.multiply(d, d, out=d)
-                np.multiply(dy, dy, out=dy)
-                np.add(d, dy, out=d)
-                np.sqrt(d, out=d)
-                if nt:
-                    dyn = d[:nt] - self.orad
-                    dmin = dyn.min(axis=0)
-                    dmin -= prep.r_eff
-                    np.minimum(gap[:, a:b], dmin, out=gap[:, a:b])
-                within = d.min(axis=1) <= rng  # (N, k)
-                cnt = within.sum(axis=0)
-                sum_mean = (d.sum(axis=1) * within).sum(axis=0) / steps
-                ok = cnt > 0
-                avg = sum_mean / np.maximum(cnt, 1)
-                density[a:b] = np.where(ok, cnt / np.maximum(avg, cfg.density_min_avg_m), 0.0)
+            closest = np.empty((n_obs, k_n), np.float32)
+            dist_sum = np.empty((n_obs, k_n), np.float32)
+            group = max(1, min(n_obs, cfg.chunk_elems // (steps * k_n)))
+            d_buf = np.empty((group, steps, k_n), np.float32)
+            dy_buf = np.empty_like(d_buf)
+            groups = [(a, min(a + group, n_t)) for a in range(0, n_t, group)]
+            groups += [(a, min(a + group, n_obs)) for a in range(n_t, n_obs, group)]
+            for a, b in groups:  # a group never mixes tracks and static clusters
+                d, dy = d_buf[: b - a], dy_buf[: b - a]
+                np.subtract(x, self.ox[a:b], out=d)
+                np.subtract(y, self.oy[a:b], out=dy)
+                flat = d.reshape(-1, k_n)
+                cv2.magnitude(flat, dy.reshape(-1, k_n), flat)
+                np.min(d, axis=1, out=closest[a:b])
+                np.matmul(self.ones, d, out=dist_sum[a:b])  # sum over steps (BLAS)
+                if a < n_t:
+                    d -= self.reach_r[a:b]
+                    np.minimum(gap, d.min(axis=0), out=gap)
+            within = closest <= np.float32(cfg.density_range_m)
+            count = within.sum(axis=0)
+            dist_sum[~within] = 0.0
+            avg = dist_sum.sum(axis=0, dtype=np.float64) / (steps * np.maximum(count, 1))
+            density = np.where(count > 0, count / np.maximum(avg, cfg.density_min_avg_m), 0.0)
         clearance = np.minimum(np.maximum(gap.min(axis=0), 0.0), cfg.clearance_cap_m)
         coll = gap < 0.0
         first = np.argmax(coll, axis=0)
         any_coll = coll[first, np.arange(k_n)]
-        v = samples[:, 0]
         s_free = np.abs(v) * first * cfg.dt
         admissible = ~any_coll | (v * v <= 2.0 * self.lim.decel_max * s_free)
-        return {"heading": heading, "clearance": clearance, "velocity": v.copy(),
-                "density": density, "admissible": admissible}
+        return {"heading": heading, "clearance": clearance.astype(np.float64),
+                "velocity": v.copy(), "density": density, "admissible": admissible}
 
 
 def normalise(a: np.ndarray) -> np.ndarray:
@@ -301,6 +405,38 @@ def _best(total: np.ndarray, admissible: np.ndarray) -> int:
     return int(np.argmax(np.where(admissible, total, -np.inf)))
 
 
+def interleaved_blocks(n: int, block: int) -> list[np.ndarray]:
+    """Indices 0..n-1 in blocks of at most `block`; block b holds b, b + nb, b + 2·nb, … so
+    every prefix of blocks spans the whole window (a cut-short coarse grid is a sparser grid)."""
+    nb = max(1, math.ceil(n / block))
+    return [np.arange(b, n, nb) for b in range(nb)]
+
+
+class _Clock:
+    """Deadline bookkeeping: a step may start only if the slowest step of its kind so far would
+    still end by the deadline. Without a clock every step may start."""
+
+    def __init__(self, deadline: float, now: Callable[[], float] | None):
+        self.deadline, self.now = deadline, now
+        self.last = now() if now is not None else 0.0
+        self.cut = False
+
+    def allows(self, estimate: float) -> bool:
+        if self.now is None:
+            return True
+        if self.now() + estimate > self.deadline:
+            self.cut = True
+        return not self.cut
+
+    def lap(self) -> float:
+        """Seconds since the previous lap (0 without a clock)."""
+        if self.now is None:
+            return 0.0
+        t = self.now()
+        dt, self.last = t - self.last, t
+        return dt
+
+
 def plan(
     cfg: DWAConfig,
     lim: LimitsConfig,
@@ -315,34 +451,42 @@ def plan(
     now: Callable[[], float] | None = None,
 ) -> DWAResult:
     """One planning call (see the module docs for frames, cost, admissibility and budget)."""
+    clock = _Clock(deadline, now)
     prep = prepare(cfg, lim, v0, omega0, points)
     steps = prep.steps
     if obs_pos is None:
         obs_pos, obs_radius = np.zeros((0, steps, 2)), np.zeros((0, steps))
     ev = _Evaluator(cfg, lim, prep, goal, obs_pos, obs_radius)
-    t_start = now() if now is not None else 0.0
-    samples = coarse_samples(cfg, prep.window)
-    raw = ev.evaluate(samples)
-    n_c = len(samples)
+    coarse = prep.coarse
+    blocks = interleaved_blocks(len(coarse), cfg.block_samples)
+    parts: list[dict[str, np.ndarray]] = []
+    slowest = 0.0
+    for i, idx in enumerate(blocks):
+        if i and not clock.allows(slowest):
+            break
+        if len(blocks) == 1:
+            parts.append(ev.evaluate(coarse, prep.coarse_x, prep.coarse_y))
+        else:
+            parts.append(ev.evaluate(coarse[idx], prep.coarse_x[:, idx], prep.coarse_y[:, idx]))
+        slowest = max(slowest, clock.lap())
+    order = np.concatenate(blocks[: len(parts)])
+    back = np.argsort(order, kind="stable")  # evaluated samples back into v-major order
+    samples = coarse[order][back]
+    raw = {k: np.concatenate([p[k] for p in parts])[back] for k in parts[0]}
     _, total = _score(cfg, raw)
     best = _best(total, raw["admissible"])
-    rounds, cut = 0, False
-    if now is not None:
-        t_prev = now()
-        est = (t_prev - t_start) * (cfg.refine_n**2 - 1) / n_c
+    rounds = 0
     v_lo, v_hi, w_lo, w_hi = prep.window
-    dv = (v_hi - v_lo) / max(cfg.n_v - 1, 1)
-    dw = (w_hi - w_lo) / max(cfg.n_omega - 1, 1)
+    dv, dw = grid_spacing(cfg, prep.window)
     offs = np.linspace(-1.0, 1.0, cfg.refine_n)
     grid = np.stack(np.meshgrid(offs, offs, indexing="ij"), -1).reshape(-1, 2)
     grid = grid[(grid != 0).any(axis=1)]
+    # a round has no more samples than a coarse block: the slowest block bounds the first round
     while best >= 0 and rounds < cfg.refine_max_rounds and (dv > 0 or dw > 0):
-        if now is not None and now() + est > deadline:
-            cut = True
+        if not clock.allows(slowest):
             break
         scale = 0.5**rounds
-        centre = samples[best]
-        new = centre + grid * np.array([dv * scale, dw * scale])
+        new = samples[best] + grid * np.array([dv * scale, dw * scale])
         new[:, 0] = np.clip(new[:, 0], v_lo, v_hi)
         new[:, 1] = np.clip(new[:, 1], w_lo, w_hi)
         r = ev.evaluate(new)
@@ -351,10 +495,8 @@ def plan(
         _, total = _score(cfg, raw)
         best = _best(total, raw["admissible"])
         rounds += 1
-        if now is not None:
-            t = now()
-            est = max(est, t - t_prev)
-            t_prev = t
+        lap = clock.lap()
+        slowest = lap if rounds == 1 else max(slowest, lap)
     evaluated = len(samples)
     if best < 0:  # nothing admissible: brake
         brake = np.array([braking_sample(prep.window)])
@@ -373,7 +515,7 @@ def plan(
         best_index=best, best=(float(samples[best, 0]), float(samples[best, 1])),
         best_path=np.stack([bx, by, bth], axis=-1),
         admissible_best=bool(raw["admissible"][best]), evaluated=evaluated,
-        refine_rounds=rounds, budget_cut=cut,
+        refine_rounds=rounds, budget_cut=clock.cut,
     )
 
 

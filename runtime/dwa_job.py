@@ -107,6 +107,7 @@ class DWAJob:
                         track_radii=radii, track_dt=dwa.dt, bin_angles=world.bin_angles,
                         unknown=world.unknown, scan=world.scan),
             self._cfg.limits, self._cfg.shield,
+            deadline=self._clock() + self._cfg.shield.candidate_budget_s, now=self._clock,
         )
         if decision.intervened:
             kind = "replaced" if (decision.reason or "").startswith("replaced") else "braked"

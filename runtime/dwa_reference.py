@@ -62,7 +62,6 @@ def plan_reference(cfg: DWAConfig, lim: LimitsConfig, v0: float, omega0: float, 
     rad = [] if obs_radius is None else np.asarray(obs_radius, float).reshape(-1, steps).tolist()
     clusters = prep.clusters.tolist()
     grid = None if prep.dist_grid is None else prep.dist_grid.tolist()
-    n, inv_cell, half = prep.n_cells, 1.0 / cfg.grid_cell_m, prep.half
     gx, gy = float(goal[0]), float(goal[1])
     v_lo, v_hi, w_lo, w_hi = prep.window
     vs = np.linspace(v_lo, v_hi, cfg.n_v).tolist()
@@ -81,8 +80,7 @@ def plan_reference(cfg: DWAConfig, lim: LimitsConfig, v0: float, omega0: float, 
             for k, (x, y, _) in enumerate(traj):
                 gap_k = math.inf
                 if grid is not None:
-                    ix = min(max(int((x + half) * inv_cell), 0), n - 1)
-                    iy = min(max(int((y + half) * inv_cell), 0), n - 1)
+                    ix, iy = prep.cell_index(x, y, cfg.grid_cell_m)
                     gap_k = grid[ix][iy] - prep.r_eff
                 for j in range(len(obs)):
                     ox, oy = obs[j][k]

@@ -46,6 +46,7 @@ decel_max·period and ω toward 0 by alpha_max·period. Every intervention carri
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -89,6 +90,9 @@ class ShieldConfig:
         True, "certify the command as the limits stage will pass it (rate-limited from state)")
     max_candidates: int = setting(64, "most DWA candidates certified per cycle before braking",
                                   min=0, max=100000)
+    candidate_budget_s: float = setting(
+        0.002, "time the search for a certified replacement may take before the shield brakes"
+        " instead", "s", min=0.0, max=0.05)
 
     @property
     def footprint(self) -> float:
@@ -173,23 +177,56 @@ def rollout(cmd: Twist, state: Twist, cfg: ShieldConfig, limits: LimitsConfig
     return ts, np.stack([x[idx], y[idx], th[idx]], axis=1), vs, ws, u
 
 
-def _track_at(world: ShieldWorld, ts: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, float]:
-    """Track centres (T, N, 2) and std (T, N) at times ts, piecewise linear with linear
-    extrapolation; plus the largest track speed and std rate (for the between-sample slack)."""
+@dataclass(frozen=True)
+class _WorldArrays:
+    """A ShieldWorld as float arrays plus what every certificate against it reuses (computed
+    once per shield call, not once per candidate)."""
+
+    points: np.ndarray  # (M, 2)
+    tracks: np.ndarray  # (T, S, 2)
+    std: np.ndarray  # (T, S)
+    radii: np.ndarray  # (T, 1)
+    track_speed: float  # largest track speed, m/s (for the between-sample slack)
+    std_rate: float  # largest std growth, m/s
+    bins_lo: float  # left edge of bin 0, rad
+    bin_width: float  # rad
+    unknown: np.ndarray  # (B,) bool
+    scan: np.ndarray  # (B,)
+    blind: np.ndarray  # (B,)
+
+
+def _arrays(world: ShieldWorld) -> _WorldArrays:
     P = np.asarray(world.track_positions, dtype=float)
     S = np.asarray(world.track_std, dtype=float)
-    _nt, ns = P.shape[0], P.shape[1]
+    nt, ns = P.shape[0], P.shape[1]
+    speed = srate = 0.0
+    if nt and ns > 1:
+        speed = float(np.max(np.linalg.norm(np.diff(P, axis=1), axis=2))) / world.track_dt
+        srate = float(np.max(np.abs(np.diff(S, axis=1)))) / world.track_dt
+    nb = len(world.bin_angles)
+    lo, w = _bin_geometry(world) if nb else (0.0, 0.0)
+    blind = (np.zeros(nb) if world.blind_range is None
+             else np.broadcast_to(np.asarray(world.blind_range, dtype=float), (nb,)))
+    return _WorldArrays(
+        points=np.asarray(world.points, dtype=float).reshape(-1, 2), tracks=P, std=S,
+        radii=np.asarray(world.track_radii, dtype=float).reshape(nt, 1), track_speed=speed,
+        std_rate=srate, bins_lo=lo, bin_width=w, unknown=np.asarray(world.unknown, dtype=bool),
+        scan=np.asarray(world.scan, dtype=float), blind=blind)
+
+
+def _track_at(wa: _WorldArrays, track_dt: float, ts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Track centres (T, N, 2) and std (T, N) at times ts, piecewise linear with linear
+    extrapolation."""
+    P, S = wa.tracks, wa.std
+    ns = P.shape[1]
     if ns == 1:
-        return (np.repeat(P, len(ts), axis=1), np.repeat(S, len(ts), axis=1), 0.0, 0.0)
-    f = ts / world.track_dt
+        return np.repeat(P, len(ts), axis=1), np.repeat(S, len(ts), axis=1)
+    f = ts / track_dt
     k = np.clip(np.floor(f).astype(int), 0, ns - 2)
     a = (f - k)[None, :]
     pos = P[:, k] + a[..., None] * (P[:, k + 1] - P[:, k])
     std = S[:, k] + a * (S[:, k + 1] - S[:, k])
-    std = np.maximum(std, 0.0)
-    speed = float(np.max(np.linalg.norm(np.diff(P, axis=1), axis=2))) / world.track_dt
-    srate = float(np.max(np.abs(np.diff(S, axis=1)))) / world.track_dt
-    return pos, std, speed, srate
+    return pos, np.maximum(std, 0.0)
 
 
 def _bin_geometry(world: ShieldWorld) -> tuple[float, float]:
@@ -203,60 +240,54 @@ def _bin_geometry(world: ShieldWorld) -> tuple[float, float]:
     return float(ang[0] - w / 2), w
 
 
-def _unseen(world: ShieldWorld, cfg: ShieldConfig, pts: np.ndarray, slack: float
-            ) -> tuple[np.ndarray, np.ndarray, list[str]]:
-    """For lead points (L, 2): bad mask (L,), the offending bin (-1 = outside view), and the kind
-    of each ('outside', 'unknown', 'shadow', 'blind'). Dilated by `slack` in range and bearing."""
-    nb = len(world.bin_angles)
-    r = np.hypot(pts[:, 0], pts[:, 1])
-    bad = np.zeros(len(pts), dtype=bool)
+_OUTSIDE, _UNKNOWN, _SHADOW, _BLIND = 1, 2, 3, 4
+
+
+def _unseen(wa: _WorldArrays, cfg: ShieldConfig, pts: np.ndarray, slack: float
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """For lead points (L, 2): why each is in unseen space (0 = it is not; _OUTSIDE, _UNKNOWN,
+    _SHADOW, _BLIND) and the offending bin (-1 = outside view). Dilated by `slack` in range and
+    bearing."""
+    nb = len(wa.scan)
+    kind = np.zeros(len(pts), dtype=np.int8)
     where = np.full(len(pts), -1)
-    kind = np.full(len(pts), "", dtype=object)
     if nb == 0:
-        bad[:] = True
-        kind[:] = "outside"
-        return bad, where, list(kind)
-    lo, w = _bin_geometry(world)
+        kind[:] = _OUTSIDE
+        return kind, where
+    r = np.hypot(pts[:, 0], pts[:, 1])
+    lo, w = wa.bins_lo, wa.bin_width
     phi = np.arctan2(pts[:, 1], pts[:, 0])
     delta = np.arcsin(np.clip(slack / np.maximum(r, 1e-12), 0.0, 1.0))
     delta = np.where(r <= slack, math.pi, delta)
     k0 = np.floor((phi - delta - lo) / w).astype(int)
     k1 = np.floor((phi + delta - lo) / w).astype(int)
     outside = (k0 < 0) | (k1 >= nb)
-    bad |= outside
-    kind[outside] = "outside"
-    unknown = np.asarray(world.unknown, dtype=bool)
-    scan = np.asarray(world.scan, dtype=float)
-    blind = (np.zeros(nb) if world.blind_range is None
-             else np.broadcast_to(np.asarray(world.blind_range, dtype=float), (nb,)))
+    kind[outside] = _OUTSIDE
     span = int(np.max(k1 - k0)) if len(pts) else 0
     for j in range(span + 1):
         k = k0 + j
-        valid = (~outside) & (k <= k1)
+        valid = (~outside) & (k <= k1) & (kind == 0)
         kc = np.clip(k, 0, nb - 1)
-        unk = valid & unknown[kc] & ~bad
-        bad |= unk
-        where[unk] = kc[unk]
-        kind[unk] = "unknown"
-        sh = valid & (r + slack >= scan[kc]) & ~bad
-        bad |= sh
-        where[sh] = kc[sh]
-        kind[sh] = "shadow"
+        tests = [(_UNKNOWN, wa.unknown[kc]), (_SHADOW, r + slack >= wa.scan[kc])]
         if cfg.blind_zone == "occupied":
-            bl = valid & (r - slack < blind[kc]) & ~bad
-            bad |= bl
-            where[bl] = kc[bl]
-            kind[bl] = "blind"
-    return bad, where, list(kind)
+            tests.append((_BLIND, r - slack < wa.blind[kc]))
+        for code, hit in tests:
+            hit = valid & hit & (kind == 0)
+            kind[hit] = code
+            where[hit] = kc[hit]
+    return kind, where
 
 
 def certify(cmd: Twist, state: Twist, world: ShieldWorld, cfg: ShieldConfig,
-            limits: LimitsConfig | None = None) -> Certificate:
+            limits: LimitsConfig | None = None, arrays: _WorldArrays | None = None
+            ) -> Certificate:
     """Does `cmd`, held as described in the module docs, keep the footprint clear of the
-    obstacle model until the robot stands still?"""
+    obstacle model until the robot stands still? (`arrays`: `_arrays(world)`, when certifying
+    many commands against one world.)"""
     limits = limits if limits is not None else LimitsConfig()
     if not (cmd.is_finite() and state.is_finite()):
         return Certificate(False, "non-finite command or state", -math.inf, 0.0)
+    wa = arrays if arrays is not None else _arrays(world)
     ts, pose, vs, _ws, u = rollout(cmd, state, cfg, limits)
     R = cfg.footprint
     c = pose[:, :2]
@@ -268,7 +299,7 @@ def certify(cmd: Twist, state: Twist, world: ShieldWorld, cfg: ShieldConfig,
     failures: list[tuple[float, str]] = []
 
     # (a) static points: bounding-box prefilter, then all distances
-    pts = np.asarray(world.points, dtype=float).reshape(-1, 2)
+    pts = wa.points
     if len(pts):
         lo_b = c.min(axis=0) - R - slack_c
         hi_b = c.max(axis=0) + R + slack_c
@@ -286,13 +317,12 @@ def certify(cmd: Twist, state: Twist, world: ShieldWorld, cfg: ShieldConfig,
                                        f"({p[0]:.2f}, {p[1]:.2f}) at t={tbad:.2f} s")))
 
     # (b) tracks
-    nt = int(np.asarray(world.track_positions).shape[0])
+    nt = len(wa.tracks)
     if nt:
-        tp, ts_std, tspeed, srate = _track_at(world, ts)
-        radii = np.asarray(world.track_radii, dtype=float).reshape(nt, 1)
-        slack_t = 0.5 * (vmax + tspeed + cfg.k_sigma * srate) * h + 1e-9
-        dist = np.linalg.norm(c[None, :, :] - tp, axis=2)
-        marg = dist - (R + radii + cfg.k_sigma * ts_std) - slack_t  # (T, N)
+        tp, ts_std = _track_at(wa, world.track_dt, ts)
+        slack_t = 0.5 * (vmax + wa.track_speed + cfg.k_sigma * wa.std_rate) * h + 1e-9
+        dist = np.hypot(c[None, :, 0] - tp[..., 0], c[None, :, 1] - tp[..., 1])
+        marg = dist - (R + wa.radii + cfg.k_sigma * ts_std) - slack_t  # (T, N)
         a, k = np.unravel_index(int(np.argmin(marg)), marg.shape)
         best = min(best, (float(marg[a, k]), float(ts[k])))
         if marg[a, k] < 0:
@@ -317,16 +347,16 @@ def certify(cmd: Twist, state: Twist, world: ShieldWorld, cfg: ShieldConfig,
         lead = lead.reshape(-1, 2)
         slack_u = (vmax + R * wmax) * h + 1e-9
         outside_disc = np.hypot(lead[:, 0], lead[:, 1]) > R + cfg.unseen_tolerance - slack_u
-        bad, where, kind = _unseen(world, cfg, lead, slack_u)
-        bad &= outside_disc
+        kind, where = _unseen(wa, cfg, lead, slack_u)
+        bad = (kind != 0) & outside_disc
         if bad.any():
             f = int(np.argmax(bad))
             tbad = float(ts[kk[f // len(offs)]])
             b = int(where[f])
-            what = {"outside": "space outside the camera's view",
-                    "unknown": f"unseen space in bin {b}",
-                    "shadow": f"space behind the scan return in bin {b}",
-                    "blind": f"the camera's blind zone in bin {b}"}[kind[f]]
+            what = {_OUTSIDE: "space outside the camera's view",
+                    _UNKNOWN: f"unseen space in bin {b}",
+                    _SHADOW: f"space behind the scan return in bin {b}",
+                    _BLIND: f"the camera's blind zone in bin {b}"}[int(kind[f])]
             failures.append((tbad, f"cmd would enter {what} at t={tbad:.2f} s"))
 
     if failures:
@@ -346,13 +376,19 @@ def brake_command(state: Twist, cfg: ShieldConfig, limits: LimitsConfig) -> Twis
 
 
 def shield(cmd: Twist, state: Twist, candidates: np.ndarray, costs: np.ndarray | None,
-           world: ShieldWorld, limits: LimitsConfig, cfg: ShieldConfig) -> ShieldDecision:
+           world: ShieldWorld, limits: LimitsConfig, cfg: ShieldConfig, *,
+           deadline: float = math.inf, now: Callable[[], float] | None = None) -> ShieldDecision:
     """Certify `cmd`; pass it unchanged if certified, else the nearest certified candidate
-    (candidates (K, 2) of (v, ω), costs (K,) for ties), else brake."""
-    cert = certify(cmd, state, world, cfg, limits)
+    (candidates (K, 2) of (v, ω), costs (K,) for ties), else brake. With a clock `now`, the
+    candidate search stops when the slowest certificate so far would end past `deadline`
+    (braking needs no search, so the answer is always in time)."""
+    wa = _arrays(world)
+    t_last = now() if now is not None else 0.0
+    cert = certify(cmd, state, world, cfg, limits, wa)
     if cert.ok:
         return ShieldDecision(cmd, False, None, cert)
     cand = np.asarray(candidates, dtype=float).reshape(-1, 2)
+    out_of_time = False
     if len(cand) and cfg.max_candidates > 0 and cmd.is_finite():
         sv = max(limits.v_max - limits.v_min, 1e-9)
         sw = max(2 * limits.omega_max, 1e-9)
@@ -360,13 +396,21 @@ def shield(cmd: Twist, state: Twist, candidates: np.ndarray, costs: np.ndarray |
         cost = (np.zeros(len(cand)) if costs is None
                 else np.nan_to_num(np.asarray(costs, dtype=float), nan=np.inf))
         order = np.lexsort((cost, d))[: cfg.max_candidates]
+        slowest = 0.0
         for i in order:
+            if now is not None:
+                t = now()
+                slowest, t_last = max(slowest, t - t_last), t
+                if t + slowest > deadline:
+                    out_of_time = True
+                    break
             if not np.all(np.isfinite(cand[i])):
                 continue
             tw = Twist(float(cand[i, 0]), float(cand[i, 1]))
-            ci = certify(tw, state, world, cfg, limits)
+            ci = certify(tw, state, world, cfg, limits, wa)
             if ci.ok:
                 return ShieldDecision(tw, True, f"replaced by candidate {int(i)}: {cert.reason}", ci)
     br = brake_command(state, cfg, limits)
-    cb = certify(br, state, world, cfg, limits)
-    return ShieldDecision(br, True, f"braking, no certified candidate: {cert.reason}", cb)
+    cb = certify(br, state, world, cfg, limits, wa)
+    why = "out of time for candidates" if out_of_time else "no certified candidate"
+    return ShieldDecision(br, True, f"braking, {why}: {cert.reason}", cb)
