@@ -1,1 +1,4 @@
-"""export"""
+"""Torch checkpoint → ONNX actor for the runtime (`safemove export`): checkpoints of four kinds
+(`checkpoint`), MLP actors rebuilt from weights (`mlp`), export and verification with the
+observation spec embedded (`onnx_export`), recorded observations for parity (`observations`).
+Needs the `export` extra (torch, onnx); the robot image does not."""

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import logging
 import signal
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 from drivers.depth_source import DepthSource
@@ -22,9 +22,13 @@ log = logging.getLogger("safemove")
 
 
 @contextmanager
-def _stop_on_signals(loop: ControlLoop) -> Iterator[None]:
+def on_stop_signals(stop: Callable[[str], None]) -> Iterator[None]:
+    """While inside, SIGTERM and SIGINT call `stop(signal name)` instead of killing the process
+    (whoever runs the robot then stops the base on its way out); the old handlers come back
+    after."""
+
     def handler(signum: int, _frame: object) -> None:
-        loop.request_stop(signal.Signals(signum).name)
+        stop(signal.Signals(signum).name)
 
     previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
@@ -60,7 +64,7 @@ def run_job(loaded: LoadedConfig, job: Job, max_cycles: int | None = None) -> tu
     notifier = SystemdNotifier.from_environ()
     loop = ControlLoop(loaded.config, loaded.calibration, link, job, notifier,
                        max_cycles=max_cycles, depth=depth)
-    with _stop_on_signals(loop):
+    with on_stop_signals(loop.request_stop):
         link.open()
         try:
             if depth is not None:

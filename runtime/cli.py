@@ -87,7 +87,7 @@ def cmd_drive(args: argparse.Namespace) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     """The service's job: `hold` keeps the base stopped; `dwa` drives to --goal with the DWA
-    baseline through the shield."""
+    baseline through the shield; `safemove` with the TD3 actor --model, through the shield."""
     import time
 
     from runtime.app import run_job
@@ -95,16 +95,23 @@ def cmd_run(args: argparse.Namespace) -> int:
     from runtime.dwa_job import DWAJob
 
     loaded = _load(args)
+    if args.model is not None and args.planner != "safemove":
+        raise UserError(f"run: --model is for --planner safemove, not {args.planner}")
     if args.planner == "hold":
         job: Any = HoldJob()
     else:
         if args.goal is None:
-            raise UserError("run --planner dwa: give --goal X Y (metres, odom frame: the robot"
-                            " starts at the origin facing +x)")
+            raise UserError(f"run --planner {args.planner}: give --goal X Y (metres, odom frame:"
+                            " the robot starts at the origin facing +x)")
         if loaded.config.depth.source == "none":
-            raise UserError(f"{loaded.config_path}: key 'depth.source': the dwa planner needs"
-                            " depth (d435 or sim), got 'none'")
-        job = DWAJob(tuple(args.goal), loaded.config, time.monotonic)
+            raise UserError(f"{loaded.config_path}: key 'depth.source': the {args.planner}"
+                            " planner needs depth (d435 or sim), got 'none'")
+        if args.planner == "safemove":
+            from runtime.safemove_job import safemove_job
+
+            job = safemove_job(args.model, tuple(args.goal), loaded.config, time.monotonic)
+        else:
+            job = DWAJob(tuple(args.goal), loaded.config, time.monotonic)
     report, link_stats = run_job(loaded, job)
     return _finish({**report.as_dict(), "job": job.summary(), "link": link_stats},
                    report.exit_code)
@@ -163,6 +170,44 @@ def cmd_bench_planner(args: argparse.Namespace) -> int:
 
     return _print_bench({"bench": "planner", **bench_planner(worlds=args.worlds, calls=args.calls)},
                         args.json)
+
+
+def cmd_bench_policy(args: argparse.Namespace) -> int:
+    from runtime.bench_policy import bench_policy
+
+    return _print_bench(bench_policy(args.runs), args.json)
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    from export.cli import run_export
+    from sim_stub.recorded_observations import simulated_observations
+
+    return _print_bench(run_export(args, simulated_observations), args.json)
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    """Seeded episodes per scenario, lock-stepped through the runtime's pipeline code."""
+    from sim_stub.evaluate import EvalSettings, evaluate, table
+
+    if args.planner == "safemove" and args.model is None:
+        raise UserError("eval --planner safemove: give --model FILE.onnx")
+    if not 0 < args.fps <= 90:
+        raise UserError(f"eval: --fps must be in (0, 90], got {args.fps}")
+    settings = EvalSettings(args.planner, args.config, tuple(args.overrides), args.model,
+                            args.fps, args.noise, args.crowd)
+
+    def progress(r: Any) -> None:
+        if not args.json:
+            print(f"{r.scenario} seed {r.seed}: {r.status} at {r.time_s:.1f} s"
+                  f"{' (at fault)' if r.status == 'collision' and r.at_fault else ''},"
+                  f" {r.path_length_m:.2f} m, {r.shield_interventions} shield interventions",
+                  file=sys.stderr)
+
+    result = evaluate(args.scenarios, args.episodes, args.seed, settings, args.jobs, progress)
+    if not args.json:
+        print(table(result), file=sys.stderr)
+    _print_json(result)
+    return 0
 
 
 def cmd_sim(args: argparse.Namespace) -> int:
@@ -244,11 +289,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("run", help="run the control loop as the service does")
     _add_config_args(p)
-    p.add_argument("--planner", choices=("hold", "dwa"), default="hold",
+    p.add_argument("--planner", choices=("hold", "dwa", "safemove"), default="hold",
                    help="hold: keep the base stopped with everything else live; dwa: the DWA"
-                        " baseline to --goal, through the shield")
+                        " baseline to --goal, through the shield; safemove: the TD3 actor"
+                        " --model to --goal, through the shield")
     p.add_argument("--goal", nargs=2, type=_finite_float, metavar=("X", "Y"),
                    help="goal in the odom frame (m): the robot starts at the origin facing +x")
+    p.add_argument("--model", type=Path, metavar="FILE.onnx",
+                   help="the actor for --planner safemove, written by `safemove export`")
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser("drive", help="teleoperate the base: a fixed twist or a scripted list")
@@ -297,6 +345,43 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--calls", type=_int_at_least(1), default=10000,
                     help="calls for the budget overshoot (default 10000)")
 
+    bp = _bench_parser(bsub, "policy", "the actor: onnxruntime vs torch eager, batch-1 latency",
+                       cmd_bench_policy)
+    bp.add_argument("--runs", type=_int_at_least(100), default=5000,
+                    help="timed inferences per engine and actor (default 5000)")
+
+    p = sub.add_parser("export", help="torch checkpoint -> ONNX actor with its spec, verified")
+    from export.cli import add_arguments as add_export_arguments
+
+    add_export_arguments(p)
+    p.add_argument("--json", action="store_true", help="print only the JSON line")
+    p.set_defaults(func=cmd_export)
+
+    p = sub.add_parser("eval", help="seeded episodes per scenario, lock-stepped, scored as in"
+                                     " the paper's table")
+    _add_config_args(p)
+    p.add_argument("--planner", choices=("dwa", "safemove"), default="dwa",
+                   help="dwa: the DWA baseline; safemove: the TD3 actor --model (both through"
+                        " the shield)")
+    p.add_argument("--model", type=Path, metavar="FILE.onnx", help="the actor for safemove")
+    p.add_argument("--scenarios", nargs="+", default=["paper_a", "paper_b", "paper_c", "paper_d"],
+                   metavar="NAME", help="shipped scenario names or YAML files (default: the"
+                                        " paper's a-d)")
+    p.add_argument("--episodes", type=_int_at_least(1), default=20,
+                   help="episodes per scenario (default 20)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the first episode (default 0)")
+    p.add_argument("--jobs", type=_int_at_least(1), default=1,
+                   help="worker processes (default 1)")
+    p.add_argument("--fps", type=_finite_float, default=15.0,
+                   help="depth frames per second (default 15)")
+    p.add_argument("--no-noise", dest="noise", action="store_false",
+                   help="render depth without the D435 noise model")
+    p.add_argument("--crowd", choices=("scenario", "reactive", "oblivious"), default="scenario",
+                   help="whether the agents see and avoid the robot (default: as the scenario"
+                        " says; the paper scenarios ship oblivious)")
+    p.add_argument("--json", action="store_true", help="print only the JSON result")
+    p.set_defaults(func=cmd_eval)
+
     p = sub.add_parser("sim", add_help=False,
                        help="the simulated world + base on a pty + depth on a socket (see --help)")
     p.add_argument("sim_args", nargs=argparse.REMAINDER)
@@ -319,6 +404,10 @@ def build_parser() -> argparse.ArgumentParser:
                        help="the emulated Spark base on a pseudo-terminal (see --help)")
     p.add_argument("emulator_args", nargs=argparse.REMAINDER)
     p.set_defaults(func=cmd_base_emulator)
+
+    from calibration.cli import add_calibrate_parser
+
+    add_calibrate_parser(sub)
     return parser
 
 

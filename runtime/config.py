@@ -22,6 +22,7 @@ from runtime.limits import LimitsConfig
 from runtime.obstacle_memory import ObstacleMemoryConfig
 from runtime.odometry_ekf import OdometryFilterConfig
 from runtime.perception import PerceptionConfig
+from runtime.policy import PolicyConfig
 from runtime.schema import (
     apply_override,
     build,
@@ -167,6 +168,7 @@ class Config:
     tracking: TrackerConfig = section(TrackerConfig, "clusters → tracked people with velocity")
     dwa: DWAConfig = section(DWAConfig, "the fixed-budget Dynamic Window Approach")
     shield: ShieldConfig = section(ShieldConfig, "the safety shield that certifies every command")
+    policy: PolicyConfig = section(PolicyConfig, "the TD3 actor (onnxruntime) of the safemove planner")
     limits: LimitsConfig = section(LimitsConfig, "velocity and acceleration limits, applied last")
 
 

@@ -134,8 +134,8 @@ def safe_corridor(path: np.ndarray, points: np.ndarray, track_positions: np.ndar
 
 def _hull(pts: np.ndarray) -> np.ndarray:
     """Counter-clockwise convex hull (OpenCV's, y up); the distinct points if degenerate."""
-    idx = cv2.convexHull(pts.astype(np.float32), clockwise=False, returnPoints=False).ravel()
-    hull = pts[idx]
+    idx = cv2.convexHull(pts.astype(np.float32), clockwise=False, returnPoints=False)
+    hull = pts[idx.ravel()] if idx is not None else pts[:0]  # None: OpenCV found no hull
     if len(hull) >= 3:
         x, y = hull[:, 0], hull[:, 1]
         if 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))) > 1e-12:

@@ -7,19 +7,25 @@ centres and (T, steps) radii that already include the growing uncertainty (the l
 with `Tracker.predict_positions(t_now + dt, dt, steps)` transformed into base_link, radius =
 track radius + n·std).
 
-Cost (maximised): G = α·heading + β·clearance + γ·velocity − δ·density, each term min–max
-normalised to [0, 1] over the evaluated sample set (σ in the paper; a constant term normalises to
-0). Raw terms of one sample:
+Cost (maximised): G = α·heading + β·clearance + γ·velocity − δ·density, each term divided by a
+fixed scale σ (`term_scales`: π, clearance_cap_m, the top speed, density_scale), so the weights
+mean the same in every window. Normalising over the evaluated samples instead (min–max, or by
+the largest) stretches differences of millimetres across a narrow dynamic window until they
+outvote everything: it kept the robot creeping at a few cm/s toward anything within the
+clearance cap. Raw terms of one sample:
 - heading   = π − |angle from the final heading to the goal seen from the final position| ∈ [0, π]
 - clearance = clip(min over steps of the gap, 0, clearance_cap); gap = distance to the nearest
   static point − R, and to each track's centre at the same step − its radius − R, with
   R = robot_radius + safety_margin (so gap < 0 is a collision)
 - velocity  = v
-- density   = N_obs / max(avg_distance, density_min_avg_m): N_obs = obstacles whose closest
-  approach to the trajectory is ≤ density_range_m, avg_distance = mean over those obstacles and
-  all steps of the centre distance. Obstacles for density: each track (at its step-k position)
-  and the static points clustered on a density_cell_m grid (one obstacle per occupied cell, at
-  its points' mean; cells out of reach + range are dropped).
+- density   = N_obs / max(avg_distance, density_min_avg_m): N_obs = obstacles near the
+  trajectory, counted softly: one whose closest approach is c counts w = max(0, 1 − c/range)
+  (range = density_range_m); avg_distance = the w-weighted mean over obstacles of their mean
+  centre distance over all steps. (A hard count jumps by one where an obstacle enters the
+  range; with a narrow window that step outweighed the velocity term and parked the robot at
+  the range's edge.) Obstacles for density: each track (at its step-k position) and the static
+  points clustered on a density_cell_m grid (one obstacle per occupied cell, at its points'
+  mean; cells out of reach + range are dropped).
 Admissible (Fox et al.): the sample can stop before its first colliding step:
 v² ≤ 2·decel_max·s_free, s_free = |v|·(time of the last step before the first collision).
 A collision later than that only lowers the clearance term.
@@ -64,12 +70,16 @@ class DWAConfig:
     refine_max_rounds: int = setting(8, "refinement: most rounds per call", min=0, max=50)
     weight_heading: float = setting(1.0, "α: weight of the heading term", min=0.0)
     weight_clearance: float = setting(1.0, "β: weight of the clearance term", min=0.0)
-    weight_velocity: float = setting(0.5, "γ: weight of the velocity term", min=0.0)
-    weight_density: float = setting(0.5, "δ: weight of the density penalty", min=0.0)
+    weight_velocity: float = setting(2.0, "γ: weight of the velocity term", min=0.0)
+    weight_density: float = setting(0.2, "δ: weight of the density penalty", min=0.0)
     density_range_m: float = setting(1.0, "an obstacle counts for density within this distance"
+                                     " (fully at 0, fading linearly to 0 at this distance)"
                                      " of the trajectory", "m", min=0.0, max=10.0)
     density_cell_m: float = setting(0.5, "static points are clustered into obstacles on this grid"
                                     " for the density term", "m", min=0.05, max=5.0)
+    density_scale: float = setting(4.0, "σ of the density term: the density that counts as 1"
+                                   " (e.g. two obstacles at an average 0.5 m)", "1/m",
+                                   min=0.001, max=1000.0)
     density_max_static: int = setting(16, "at most this many static clusters (the nearest to the"
                                       " robot) count for density (bounds the cost)", min=0)
     density_min_avg_m: float = setting(0.1, "floor of the average distance in density", "m",
@@ -77,7 +87,12 @@ class DWAConfig:
     robot_radius_m: float = setting(0.18, "robot footprint radius", "m", min=0.0, max=2.0)
     safety_margin_m: float = setting(0.05, "extra clearance kept from every obstacle", "m",
                                      min=0.0, max=2.0)
-    clearance_cap_m: float = setting(1.0, "clearance term saturates here", "m", min=0.01,
+    track_k_sigma: float = setting(2.0, "a track's predicted disc grows by this many standard"
+                                   " deviations of its predicted position", min=0.0, max=10.0)
+    track_inflation_cap_m: float = setting(
+        0.5, "at most this much is added to a track's radius for prediction uncertainty (the"
+        " shield keeps its own, uncapped, over its short horizon)", "m", min=0.0, max=10.0)
+    clearance_cap_m: float = setting(0.5, "clearance term saturates here", "m", min=0.01,
                                      max=5.0)
     grid_cell_m: float = setting(0.03, "cell of the static distance-transform grid", "m",
                                  min=0.005, max=0.2)
@@ -92,7 +107,7 @@ class DWAConfig:
 @dataclass(frozen=True)
 class DWAResult:
     samples: np.ndarray  # (K, 2) [v, ω] in evaluation order (coarse first)
-    heading: np.ndarray  # (K,) normalised terms, [0, 1]
+    heading: np.ndarray  # (K,) terms divided by their scale σ (term_scales)
     clearance: np.ndarray
     velocity: np.ndarray
     density: np.ndarray
@@ -370,10 +385,12 @@ class _Evaluator:
                 if a < n_t:
                     d -= self.reach_r[a:b]
                     np.minimum(gap, d.min(axis=0), out=gap)
-            within = closest <= np.float32(cfg.density_range_m)
-            count = within.sum(axis=0)
-            dist_sum[~within] = 0.0
-            avg = dist_sum.sum(axis=0, dtype=np.float64) / (steps * np.maximum(count, 1))
+            # soft count: an obstacle whose closest approach is c counts 1 − c/range
+            rng = max(cfg.density_range_m, 1e-9)
+            weight = np.maximum(1.0 - closest / np.float32(rng), 0.0, dtype=np.float32)
+            count = weight.sum(axis=0, dtype=np.float64)
+            avg = ((weight * dist_sum).sum(axis=0, dtype=np.float64)
+                   / (steps * np.maximum(count, 1e-12)))
             density = np.where(count > 0, count / np.maximum(avg, cfg.density_min_avg_m), 0.0)
         clearance = np.minimum(np.maximum(gap.min(axis=0), 0.0), cfg.clearance_cap_m)
         coll = gap < 0.0
@@ -385,15 +402,15 @@ class _Evaluator:
                 "velocity": v.copy(), "density": density, "admissible": admissible}
 
 
-def normalise(a: np.ndarray) -> np.ndarray:
-    lo, hi = float(a.min()), float(a.max())
-    if not hi > lo:
-        return np.zeros_like(a)
-    return (a - lo) / (hi - lo)
+def term_scales(cfg: DWAConfig, lim: LimitsConfig) -> dict[str, float]:
+    """σ: the fixed scale of each cost term (its value at "1")."""
+    return {"heading": math.pi, "clearance": cfg.clearance_cap_m,
+            "velocity": max(lim.v_max, -lim.v_min, 1e-9), "density": cfg.density_scale}
 
 
-def _score(cfg: DWAConfig, raw: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray], np.ndarray]:
-    n = {k: normalise(raw[k]) for k in ("heading", "clearance", "velocity", "density")}
+def _score(cfg: DWAConfig, lim: LimitsConfig, raw: dict[str, np.ndarray]
+           ) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    n = {k: raw[k] / sigma for k, sigma in term_scales(cfg, lim).items()}
     total = (cfg.weight_heading * n["heading"] + cfg.weight_clearance * n["clearance"]
              + cfg.weight_velocity * n["velocity"] - cfg.weight_density * n["density"])
     return n, total
@@ -473,7 +490,7 @@ def plan(
     back = np.argsort(order, kind="stable")  # evaluated samples back into v-major order
     samples = coarse[order][back]
     raw = {k: np.concatenate([p[k] for p in parts])[back] for k in parts[0]}
-    _, total = _score(cfg, raw)
+    _, total = _score(cfg, lim, raw)
     best = _best(total, raw["admissible"])
     rounds = 0
     v_lo, v_hi, w_lo, w_hi = prep.window
@@ -492,7 +509,7 @@ def plan(
         r = ev.evaluate(new)
         samples = np.concatenate([samples, new])
         raw = {k: np.concatenate([raw[k], r[k]]) for k in raw}
-        _, total = _score(cfg, raw)
+        _, total = _score(cfg, lim, raw)
         best = _best(total, raw["admissible"])
         rounds += 1
         lap = clock.lap()
@@ -505,7 +522,7 @@ def plan(
         raw = {k: np.concatenate([raw[k], r[k]]) for k in raw}
         best = len(samples) - 1
         evaluated += 1
-    norm, total = _score(cfg, raw)
+    norm, total = _score(cfg, lim, raw)
     bx, by, bth = (a[:, 0] for a in rollout(samples[best:best + 1], prep.times))
     return DWAResult(
         samples=samples, heading=norm["heading"], clearance=norm["clearance"],

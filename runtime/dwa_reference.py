@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from runtime.dwa import DWAConfig, braking_sample, prepare
+from runtime.dwa import DWAConfig, braking_sample, prepare, term_scales
 from runtime.limits import LimitsConfig
 
 
@@ -45,13 +45,6 @@ def _trajectory(v: float, w: float, dt: float, steps: int) -> list[tuple[float, 
         th = th_new
         out.append((x, y, th))
     return out
-
-
-def _normalise(vals: list[float]) -> list[float]:
-    lo, hi = min(vals), max(vals)
-    if not hi > lo:
-        return [0.0] * len(vals)
-    return [(a - lo) / (hi - lo) for a in vals]
 
 
 def plan_reference(cfg: DWAConfig, lim: LimitsConfig, v0: float, omega0: float, goal,
@@ -101,11 +94,12 @@ def plan_reference(cfg: DWAConfig, lim: LimitsConfig, v0: float, omega0: float, 
             ang = (ang + math.pi) % (2.0 * math.pi) - math.pi
             heading = math.pi - abs(ang)
             clearance = min(max(min_gap, 0.0), cfg.clearance_cap_m)
-            count, mean_sum = 0, 0.0
+            count, mean_sum = 0.0, 0.0
             for j in range(len(closest)):
-                if closest[j] <= cfg.density_range_m:
-                    count += 1
-                    mean_sum += dist_sum[j] / steps
+                soft = 1.0 - closest[j] / cfg.density_range_m if cfg.density_range_m > 0 else 0.0
+                if soft > 0.0:
+                    count += soft
+                    mean_sum += soft * dist_sum[j] / steps
             density = count / max(mean_sum / count, cfg.density_min_avg_m) if count else 0.0
             if first_coll < 0:
                 ok = True
@@ -119,7 +113,8 @@ def plan_reference(cfg: DWAConfig, lim: LimitsConfig, v0: float, omega0: float, 
             raws["density"].append(density)
             admissible.append(ok)
 
-    terms = {k: _normalise(a) for k, a in raws.items()}
+    scales = term_scales(cfg, lim)
+    terms = {k: [a / scales[k] for a in vals] for k, vals in raws.items()}
     total, best, best_total = [], -1, -math.inf
     for i in range(len(samples)):
         g = (cfg.weight_heading * terms["heading"][i] + cfg.weight_clearance * terms["clearance"][i]

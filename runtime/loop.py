@@ -16,18 +16,14 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
-import numpy as np
-
 from runtime.config import Calibration, Config
 from runtime.errors import DeviceError
 from runtime.limits import apply_limits
-from runtime.obstacle_memory import ObstacleMemory
 from runtime.odometry_ekf import OdometryEKF
-from runtime.perception import Perception
 from runtime.sdnotify import SystemdNotifier
 from runtime.timing import RateKeeper, RingStats
-from runtime.tracking import Track, Tracker
 from runtime.types import STOP, DepthFrame, Odometry, Twist, WheelIncrement
+from runtime.world_model import WorldModel, WorldState
 
 log = logging.getLogger("safemove.loop")
 
@@ -74,20 +70,6 @@ class DepthStats:
         self.frames += 1
         self.last_frame_number = frame.frame_number
         self.last_t = frame.t
-
-
-@dataclass(frozen=True)
-class WorldState:
-    """What the planner and the policy see after a depth frame: the scan (min range per bearing
-    bin; `unknown` bins are not free), remembered obstacle points in base_link, and tracks."""
-
-    t: float
-    scan: np.ndarray
-    unknown: np.ndarray
-    bin_angles: np.ndarray
-    points_base: np.ndarray
-    tracks: list[Track]
-    floor_ok: bool | None
 
 
 class Job(Protocol):
@@ -178,11 +160,8 @@ class ControlLoop:
         self._depth = depth
         self.depth_stats = DepthStats() if depth is not None else None
         self.latest_depth: DepthFrame | None = None
-        self._mount = calibration.camera
-        self._perception: Perception | None = None
         self._perceived: DepthFrame | None = None
-        self._memory = ObstacleMemory(config.memory)
-        self._tracker = Tracker(config.tracking)
+        self._world_model = WorldModel(config, calibration.camera, clock)
         self.world: WorldState | None = None
         self._floor_ok: bool | None = None
         self._odom_filter = OdometryEKF(calibration.odometry.axle_length_m, config.odometry)
@@ -377,34 +356,19 @@ class ControlLoop:
             rate.sleep()
 
     def _update_world(self, frame: DepthFrame, odom: Odometry) -> None:
-        """Perception → memory → tracking on the newest frame (older undrained ones are only
-        counted: a planner wants the present, not a backlog). The tracker clusters the frame's
-        points as the memory binned them, one per cell."""
-        clock, rec, ch = self._clock, self.timings.record, self._ch
+        """The world model on the newest frame (older undrained ones are only counted: a planner
+        wants the present, not a backlog)."""
         self._perceived = frame
-        if self._perception is None or self._perception.intrinsics != frame.intrinsics:
-            self._perception = Perception(frame.intrinsics, self._mount, self._cfg.perception)
-        t0 = clock()
-        out = self._perception.process(frame.depth)
-        t1 = clock()
-        rec(ch["perception"], t1 - t0)
-        pose = (odom.x, odom.y, odom.theta)
-        self._memory.update_from(out, pose, frame.t, view=self._perception.view)
-        remembered = self._memory.points_base(pose, frame.t)
-        t2 = clock()
-        rec(ch["memory"], t2 - t1)
-        tracks = self._tracker.update(self._memory.frame_points, frame.t,
-                                      sensor_pose=np.array(pose))
-        rec(ch["tracking"], clock() - t2)
-        self.world = WorldState(frame.t, out.scan.copy(), out.unknown.copy(), out.bin_angles,
-                                remembered, tracks, out.floor_ok)
+        self.world = self._world_model.update(frame, odom)
+        for stage, seconds in self._world_model.stage_s.items():
+            self.timings.record(self._ch[stage], seconds)
 
     def _check_floor(self) -> None:
         """Health check of the camera's calibration, run in the slack after the command: it
         never delays one. Logged when the verdict changes."""
-        if self._perception is None or not self._perception.floor_check_due:
+        verdict = self._world_model.check_floor()
+        if verdict is None:
             return
-        verdict = self._perception.check_floor()
         if verdict.ok is not None and verdict.ok != self._floor_ok:
             self._floor_ok = verdict.ok
             if not verdict.ok:

@@ -33,6 +33,12 @@ Obstacle model (what must stay clear, exactly):
       memory holds points (a) — the floor behind it was seen this frame; with "occupied" a lead
       point in a known bin's blind zone (beyond the current disc) is occupied too (strict; it
       forbids all forward motion when blind_range > R + unseen_tolerance).
+An obstacle that already violates (a) or (b) at t = 0 (a track's inflated disc over the
+footprint, a point inside it) makes every command fail the rule as stated, rotation in place
+included, and would freeze the robot where it stands. For such an obstacle the rule becomes:
+it must not get any closer than it is at t = 0 (its distance, less the track's k_sigma·std,
+never drops below the t = 0 value, up to twice the discretisation slack). Moving away or turning
+in place passes; a person walking into the robot fails every command, so the shield brakes.
 Discretisation is made conservative: the check at sample times uses slacks (half the distance the
 centre / a track / the clearance can change between samples for (a)/(b); a full step of lead-point
 motion, as a dilation of bearing and range, for (c)/(d)), so a continuous-time violation of the
@@ -306,14 +312,19 @@ def certify(cmd: Twist, state: Twist, world: ShieldWorld, cfg: ShieldConfig,
         near = np.all((pts >= lo_b) & (pts <= hi_b), axis=1)
         q = pts[near]
         if len(q):
-            d2 = ((c[:, None, :] - q[None, :, :]) ** 2).sum(axis=2)
-            i, j = np.unravel_index(int(np.argmin(d2)), d2.shape)
-            margin = math.sqrt(float(d2[i, j])) - R - slack_c
+            d = np.sqrt(((c[:, None, :] - q[None, :, :]) ** 2).sum(axis=2))  # (N, Q)
+            # a point already inside the footprint may not come any closer (see module docs)
+            need = np.where(d[0] >= R, R + slack_c, d[0] - slack_c)
+            marg = d - need
+            i, j = np.unravel_index(int(np.argmin(marg)), marg.shape)
+            margin = float(marg[i, j])
             best = min(best, (margin, float(ts[i])))
             if margin < 0:
-                tbad = float(ts[np.argmax(d2.min(axis=1) < (R + slack_c) ** 2)])
+                tbad = float(ts[np.argmax((marg < 0).any(axis=1))])
                 p = q[j]
-                failures.append((tbad, (f"cmd would come within {R:.2f} m of the obstacle point "
+                what = (f"come within {R:.2f} m of" if d[0, j] >= R
+                        else "come closer to")
+                failures.append((tbad, (f"cmd would {what} the obstacle point "
                                        f"({p[0]:.2f}, {p[1]:.2f}) at t={tbad:.2f} s")))
 
     # (b) tracks
@@ -322,7 +333,10 @@ def certify(cmd: Twist, state: Twist, world: ShieldWorld, cfg: ShieldConfig,
         tp, ts_std = _track_at(wa, world.track_dt, ts)
         slack_t = 0.5 * (vmax + wa.track_speed + cfg.k_sigma * wa.std_rate) * h + 1e-9
         dist = np.hypot(c[None, :, 0] - tp[..., 0], c[None, :, 1] - tp[..., 1])
-        marg = dist - (R + wa.radii + cfg.k_sigma * ts_std) - slack_t  # (T, N)
+        gap = dist - (R + wa.radii + cfg.k_sigma * ts_std)  # (T, N)
+        # a track already overlapping the footprint may not get any closer (see module docs)
+        floor = np.where(gap[:, :1] >= 0, 0.0, gap[:, :1] - slack_t)
+        marg = gap - slack_t - floor
         a, k = np.unravel_index(int(np.argmin(marg)), marg.shape)
         best = min(best, (float(marg[a, k]), float(ts[k])))
         if marg[a, k] < 0:

@@ -45,7 +45,11 @@ Pipeline per frame
    inflated by the missing half-width in both gating and update.
 5. Births from unassigned clusters (tentative; confirmed after `birth_hits` hits; a tentative
    track dies at its first miss), deaths after `death_misses` consecutive misses or
-   `death_unseen_s` without a hit.
+   `death_unseen_s` without a hit. A confirmed track predicted (partly) outside the field of
+   view is not missed — not seeing it there is no evidence it is gone — and coasts on its
+   prediction (`coasting`) until `coast_out_of_view_s` after its last hit, so the planner keeps
+   avoiding a person who walked out of the 87° view; past `death_unseen_s` it is no longer
+   matched to clusters (a returning person starts a new track).
 6. Stationarity: a track whose velocity is not significantly different from zero
    (vᵀ P_vv⁻¹ v < `stationary_chi2`, or |v| < `stationary_speed_m_s`) reports velocity 0 and is
    predicted as standing still, so static clutter gets no phantom velocity. The filter state
@@ -141,6 +145,16 @@ class TrackerConfig:
         min_exclusive=True,
         max=60.0,
     )
+    coast_out_of_view_s: float = setting(
+        3.0,
+        "a confirmed track predicted outside the field of view is not missed (it cannot be"
+        " seen): it coasts on its prediction, with growing uncertainty, until this long after"
+        " its last hit (with the sensor pose and heading given); past death_unseen_s it is no"
+        " longer matched to clusters, only predicted",
+        "s",
+        min=0.0,
+        max=60.0,
+    )
     max_speed_m_s: float = setting(
         2.0,
         "plausible top speed of a tracked object; faster velocity estimates are clamped",
@@ -224,6 +238,7 @@ class Track:
     confirmed: bool
     misses: int = 0  # consecutive frames without a hit
     stationary: bool = False
+    coasting: bool = False  # unseen and predicted outside the field of view (not a miss)
 
 
 # --- clustering ------------------------------------------------------------------------------------
@@ -454,7 +469,8 @@ def cv_matrices(dt: float, accel_sigma: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 class _TrackState:
-    __slots__ = ("born", "confirmed", "hits", "id", "kf", "last_hit", "last_z", "misses", "radius")
+    __slots__ = ("born", "coasting", "confirmed", "hits", "id", "kf", "last_hit", "last_z", "misses",
+                 "radius")
 
     def __init__(self, tid: int, kf: KalmanFilter, radius: float, t: float) -> None:
         self.id = tid
@@ -466,6 +482,7 @@ class _TrackState:
         self.hits = 1
         self.misses = 0
         self.confirmed = False
+        self.coasting = False
 
 
 class Tracker:
@@ -535,6 +552,7 @@ class Tracker:
             tr.radius = (1.0 - a) * tr.radius + a * float(clusters.radii[j])
             tr.hits += 1
             tr.misses = 0
+            tr.coasting = False
             tr.last_hit = t
             tr.last_z = z[j].copy()
             if tr.hits >= cfg.birth_hits:
@@ -545,6 +563,11 @@ class Tracker:
         survivors = []
         for i, tr in enumerate(self._tracks):
             if not assigned_t[i]:
+                tr.coasting = tr.confirmed and self._out_of_view(tr, sensor_pose)
+                if tr.coasting:
+                    if t - tr.last_hit < cfg.coast_out_of_view_s:
+                        survivors.append(tr)
+                    continue
                 tr.misses += 1
                 if not tr.confirmed:
                     continue
@@ -558,6 +581,20 @@ class Tracker:
             survivors.append(self._birth(z[j], float(clusters.radii[j]), t))
         self._tracks = survivors
         return [self._export(tr, tr.kf.x[:, 0], tr.kf.P, t) for tr in self._tracks]
+
+    def _out_of_view(self, tr: _TrackState, sensor_pose: np.ndarray | None) -> bool:
+        """Is any part of the track's disc outside the sensor's horizontal field of view (so
+        not seeing it is no evidence that it is gone)? Needs the pose with its heading."""
+        half = 0.5 * math.radians(self.config.field_of_view_deg)
+        if sensor_pose is None or len(sensor_pose) < 3 or half >= math.pi:
+            return False
+        dx = float(tr.kf.x[0, 0]) - float(sensor_pose[0])
+        dy = float(tr.kf.x[1, 0]) - float(sensor_pose[1])
+        d = math.hypot(dx, dy)
+        if d <= tr.radius:
+            return True  # the sensor is inside the disc: too close to be seen whole
+        bearing = abs(math.remainder(math.atan2(dy, dx) - float(sensor_pose[2]), math.tau))
+        return bearing + math.asin(min(1.0, tr.radius / d)) > half
 
     def predict(self, t: float, confirmed_only: bool = True) -> list[Track]:
         """Tracks predicted to time t (≥ the last update) without changing the tracker.
@@ -631,6 +668,10 @@ class Tracker:
             sig2[None, :] + self.config.measurement_noise_m**2
         )
         gated |= ~(jump <= reach)
+        # a track kept alive only by coasting out of view (unseen longer than death_unseen_s) is
+        # a prediction for the planner, not a hypothesis to match: its covariance has grown
+        # enough to claim a static obstacle's cluster; a returning person gets a new track
+        gated[since > self.config.death_unseen_s] = True
         # cost: d² plus log det S (the negative log-likelihood, up to constants), so a track
         # with a tight covariance is preferred over a vague one at the same d²
         cost = d2 + np.log(det)
@@ -686,4 +727,5 @@ class Tracker:
             confirmed=tr.confirmed,
             misses=tr.misses,
             stationary=stationary,
+            coasting=tr.coasting,
         )

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from runtime.cli import main
-from runtime.dwa_job import predict_tracks_base
+from runtime.planning_step import predict_tracks_base
 from runtime.tracking import Track
 
 

@@ -67,10 +67,16 @@ def violates(cmd: Twist, state: Twist, w: ShieldWorld, cfg=CFG, lim=LIM, h=2e-4)
             break
     T, X, Y, TH, V = map(np.array, (times, xs, ys, ths, vs))
     C = np.stack([X, Y], 1)
+    # an obstacle already violating at t = 0 may not come closer (tolerance: twice the
+    # shield's discretisation slack at check_dt, taken at the largest speeds of these worlds)
+    vmax = max(abs(state.v), abs(u.v))
+    tol_point = vmax * cfg.check_dt + 1e-7
+    tol_track = (vmax + TRACK_SPEED_MAX + cfg.k_sigma * STD_RATE_MAX) * cfg.check_dt + 1e-7
     P = np.asarray(w.points).reshape(-1, 2)
     if len(P):
         d = np.linalg.norm(C[:, None] - P[None], axis=2)
-        if d.min() < R - 1e-7:
+        need = np.where(d[0] >= R, R, d[0] - tol_point)
+        if np.any(d < need - 1e-7):
             return "point"
     for i in range(len(w.track_radii)):
         k = np.arange(w.track_positions.shape[1]) * w.track_dt
@@ -78,8 +84,8 @@ def violates(cmd: Twist, state: Twist, w: ShieldWorld, cfg=CFG, lim=LIM, h=2e-4)
         px = np.interp(T, k, w.track_positions[i, :, 0])
         py = np.interp(T, k, w.track_positions[i, :, 1])
         sd = np.interp(T, k, w.track_std[i])
-        d = np.hypot(X - px, Y - py)
-        if np.any(d < R + w.track_radii[i] + cfg.k_sigma * sd - 1e-7):
+        gap = np.hypot(X - px, Y - py) - (R + w.track_radii[i] + cfg.k_sigma * sd)
+        if np.any(gap < (0.0 if gap[0] >= 0 else gap[0] - tol_track) - 1e-7):
             return "track"
     beta = math.radians(cfg.lead_half_angle_deg)
     offs = np.linspace(-beta, beta, cfg.lead_rays)
@@ -99,6 +105,10 @@ def violates(cmd: Twist, state: Twist, w: ShieldWorld, cfg=CFG, lim=LIM, h=2e-4)
             if w.unknown[b] or r >= w.scan[b]:
                 return "unseen"
     return None
+
+
+TRACK_SPEED_MAX = 1.5 * math.sqrt(2.0)  # random_world's fastest track
+STD_RATE_MAX = 0.2
 
 
 def random_world(rng: np.random.Generator) -> ShieldWorld:
@@ -196,8 +206,27 @@ def test_rotation_in_place_with_clear_disc_is_certified_even_when_blind():
     w = world(ring, unknown=np.ones(NB, bool))
     assert certify(Twist(0.0, 1.0), Twist(0.0, 0.0), w, CFG, LIM).ok
     assert not certify(Twist(0.1, 0.0), Twist(0.1, 0.0), w, CFG, LIM).ok
-    inner = world(np.array([[0.0, 0.2]]))
-    assert not certify(Twist(0.0, 1.0), Twist(0.0, 0.0), inner, CFG, LIM).ok
+
+
+
+def test_an_obstacle_already_inside_the_footprint_may_not_come_closer():
+    """Without this rule nothing is certifiable next to such an obstacle and the robot freezes
+    where it stands; with it, turning in place and moving away pass, approaching does not."""
+    behind = world(np.array([[-0.15, 0.0]]))  # inside the 0.22 m footprint, behind the centre
+    assert certify(Twist(0.0, 1.0), Twist(0.0, 0.0), behind, CFG, LIM).ok  # turn in place
+    assert certify(Twist(0.2, 0.0), Twist(0.0, 0.0), behind, CFG, LIM).ok  # drive away
+    ahead = world(np.array([[0.15, 0.0]]))
+    cert = certify(Twist(0.2, 0.0), Twist(0.0, 0.0), ahead, CFG, LIM)
+    assert not cert.ok and "closer" in cert.reason
+    # a track overlapping the footprint: the same, and one walking in makes every command fail
+    still = world(tracks=np.array([[[0.3, 0.0]] * 12]), std=np.zeros((1, 12)),
+                  radii=np.array([0.2]))
+    assert certify(Twist(0.0, 1.0), Twist(0.0, 0.0), still, CFG, LIM).ok
+    assert not certify(Twist(0.2, 0.0), Twist(0.0, 0.0), still, CFG, LIM).ok
+    coming = world(tracks=np.array([[[0.3 - 0.5 * 0.1 * k, 0.0] for k in range(12)]]),
+                   std=np.zeros((1, 12)), radii=np.array([0.2]))
+    for cmd in (Twist(0.0, 1.0), Twist(0.0, 0.0), Twist(-0.1, 0.0)):
+        assert not certify(cmd, Twist(0.0, 0.0), coming, CFG, LIM).ok
 
 
 def test_unknown_bin_ahead_rejects_forward_motion():

@@ -214,6 +214,28 @@ def test_births_need_n_hits_and_deaths_after_m_misses():
     assert tr.update(Clusters.empty(), 0.6) == []
 
 
+def test_a_track_that_left_the_view_coasts_instead_of_dying():
+    """Not seeing a person outside the field of view is no evidence that they are gone: the
+    track coasts on its prediction until coast_out_of_view_s; in view, unseen, it dies at
+    death_unseen_s."""
+    cfg = TrackerConfig(birth_hits=1, death_misses=100, death_unseen_s=0.5,
+                        coast_out_of_view_s=2.0)
+    looking_at = np.array([0.0, 0.0, 0.0])  # the track at (2, 0) is dead ahead
+    looking_away = np.array([0.0, 0.0, math.pi])
+    for sensor, alive_at_1s in ((looking_at, False), (looking_away, True)):
+        tr = Tracker(cfg)
+        tr.update(point_clusters((2.0, 0.0)), 0.0, sensor_pose=looking_at)
+        assert (len(tr.update(Clusters.empty(), 1.0, sensor_pose=sensor)) == 1) == alive_at_1s
+    coasting = tr.update(Clusters.empty(), 1.9, sensor_pose=looking_away)[0]
+    assert coasting.coasting and coasting.misses == 0
+    assert tr.update(Clusters.empty(), 2.1, sensor_pose=looking_away) == []
+    # half out of the view (its disc crosses the edge) counts as out of view
+    tr = Tracker(cfg)
+    edge = math.radians(87.0 / 2)
+    tr.update(point_clusters((2.0 * math.cos(edge), 2.0 * math.sin(edge))), 0.0)
+    assert len(tr.update(Clusters.empty(), 1.0, sensor_pose=looking_at)) == 1
+
+
 def test_costs_never_nan_and_time_cannot_go_back():
     tr = Tracker(TrackerConfig(birth_hits=1))
     tr.update(point_clusters((0.0, 0.0), (1e6, 1e6)), 0.0)
@@ -267,7 +289,9 @@ def run_paper_d(seconds: float = 60.0, hz: float = 15.0, omega: float = 0.1):
         origin = snap.robot_pose[:2]
         circles = [(p, r) for p, r in zip(snap.agent_positions, snap.agent_radii)]
         pts, who = scan(origin, theta, circles + static_circles, static_polys, rng)
-        tracks = [x for x in tracker.update(pts, snap.t, np.array([*origin, theta])) if x.confirmed]
+        # tracks coasting outside the view are predictions, not estimates of what is seen
+        tracks = [x for x in tracker.update(pts, snap.t, np.array([*origin, theta]))
+                  if x.confirmed and not x.coasting]
         if not tracks:
             continue
         counts = np.bincount(who[who >= 0], minlength=n_agents + len(static_centres))

@@ -1,0 +1,151 @@
+"""What every goal-driven planner job does around its own decision, in one place.
+
+Each RUNNING cycle, before the decision (`PlanningStep.prepare`): the goal check (reached →
+stop, finished once still), the goal and the tracks' constant-velocity predictions into
+base_link, and DWA within its deadline (its candidates are what the shield substitutes). After
+the decision (`PlanningStep.certify`): the shield certifies the command or puts a certified DWA
+candidate (or a brake) in its place, and every intervention is counted by kind and logged with
+its reason. The DWA job's decision is DWA's best sample; the SafeMove job's is the actor's.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from runtime.config import Config
+from runtime.dwa import DWAResult, plan
+from runtime.shield import ShieldWorld, shield
+from runtime.tracking import Track
+from runtime.types import Odometry, Twist
+from runtime.world_model import WorldState
+
+log = logging.getLogger("safemove.planner")
+
+GOAL_TOLERANCE_M = 0.2  # the paper's success radius
+STILL_V = 0.01
+
+
+def predict_tracks_base(
+    tracks: list[Track], pose: tuple[float, float, float], elapsed: float, dt: float, steps: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Confirmed tracks at times elapsed + k·dt (k = 0..steps) in base_link, constant velocity:
+    positions (T, steps+1, 2), position σ growing with the velocity covariance (T, steps+1),
+    radii (T,). `elapsed`: seconds from the tracks' frame to now."""
+    confirmed = [t for t in tracks if t.confirmed]
+    n = len(confirmed)
+    tau = elapsed + dt * np.arange(steps + 1)
+    if n == 0:
+        return np.zeros((0, steps + 1, 2)), np.zeros((0, steps + 1)), np.zeros(0)
+    p = np.array([t.position for t in confirmed])
+    v = np.array([t.velocity for t in confirmed])
+    cov = np.array([t.covariance for t in confirmed])
+    odom = p[:, None, :] + v[:, None, :] * tau[None, :, None]
+    x, y, th = pose
+    c, s = math.cos(th), math.sin(th)
+    dx, dy = odom[..., 0] - x, odom[..., 1] - y
+    base = np.stack([c * dx + s * dy, -s * dx + c * dy], axis=-1)
+    pos_var = np.maximum(cov[:, 0, 0], cov[:, 1, 1])
+    # a track the stationarity test holds still is predicted still: its velocity variance
+    # (large while the track is young) must not grow it into a wall across the room
+    moving = np.array([not t.stationary for t in confirmed])
+    vel_var = np.maximum(cov[:, 2, 2], cov[:, 3, 3]) * moving
+    std = np.sqrt(pos_var[:, None] + vel_var[:, None] * tau[None, :] ** 2)
+    return base, std, np.array([t.radius for t in confirmed])
+
+
+@dataclass(frozen=True)
+class PlanningContext:
+    """One cycle's world as the decision and the shield see it, all in base_link now."""
+
+    goal_base: np.ndarray  # (2,)
+    state: Twist  # odometry's (v, ω): what the base is executing
+    dwa: DWAResult
+    track_pos: np.ndarray  # (T, steps+1, 2) at k·dwa.dt from now
+    track_std: np.ndarray  # (T, steps+1)
+    track_radii: np.ndarray  # (T,)
+    shield_world: ShieldWorld
+
+
+class PlanningStep:
+    """Goal check, DWA and the shield for a job driving to a goal in the odom frame."""
+
+    def __init__(self, goal_odom: tuple[float, float], config: Config,
+                 clock: Callable[[], float] | None, decision: str) -> None:
+        """`clock` times the DWA and shield budgets (time.monotonic on the robot); None runs
+        both to their count limits (refinement rounds, candidates): deterministic, as the
+        lock-stepped evaluation wants."""
+        self.goal = np.asarray(goal_odom, dtype=float)
+        self._cfg = config
+        self._clock = clock
+        self._decision = decision  # who proposes the command, for the log ("DWA", "policy")
+        # the shield never certifies reversing into space the camera cannot see (unless told
+        # to trust obstacle memory there): candidates it would refuse are not worth planning
+        lim = config.limits
+        self._plan_limits = (lim if config.shield.reverse_into_unseen
+                             else replace(lim, v_min=max(lim.v_min, 0.0)))
+        self.finished = False
+        self.reached = False
+        self.cycles = 0
+        self.inadmissible = 0
+        self.interventions: Counter[str] = Counter()
+
+    def prepare(self, now: float, odom: Odometry, world: WorldState | None
+                ) -> PlanningContext | None:
+        """The cycle's context, or None when the job must stop (goal reached, no world yet)."""
+        self.cycles += 1
+        to_goal = self.goal - np.array((odom.x, odom.y))
+        if float(np.hypot(*to_goal)) <= GOAL_TOLERANCE_M:
+            self.reached = True
+            if abs(odom.v) < STILL_V:
+                self.finished = True
+            return None
+        if world is None:
+            return None
+        c, s = math.cos(odom.theta), math.sin(odom.theta)
+        goal_base = np.array([c * to_goal[0] + s * to_goal[1], -s * to_goal[0] + c * to_goal[1]])
+        dwa = self._cfg.dwa
+        steps = max(1, round(dwa.horizon_s / dwa.dt))
+        pos, std, radii = predict_tracks_base(world.tracks, (odom.x, odom.y, odom.theta),
+                                              max(0.0, now - world.t), dwa.dt, steps)
+        result = plan(dwa, self._plan_limits, odom.v, odom.omega, goal_base, world.points_base,
+                      pos[:, 1:], radii[:, None] + np.minimum(dwa.track_k_sigma * std[:, 1:],
+                                                              dwa.track_inflation_cap_m),
+                      deadline=self._deadline(dwa.budget_s), now=self._clock)
+        if not result.admissible_best:
+            self.inadmissible += 1
+        sw = ShieldWorld(points=world.points_base, track_positions=pos, track_std=std,
+                         track_radii=radii, track_dt=dwa.dt, bin_angles=world.bin_angles,
+                         unknown=world.unknown, scan=world.scan)
+        return PlanningContext(goal_base, Twist(odom.v, odom.omega), result, pos, std, radii, sw)
+
+    def certify(self, command: Twist, ctx: PlanningContext) -> Twist:
+        """The shield's decision on `command`; interventions counted and logged."""
+        ok = ctx.dwa.admissible
+        decision = shield(command, ctx.state, ctx.dwa.samples[ok], ctx.dwa.total[ok],
+                          ctx.shield_world, self._cfg.limits, self._cfg.shield,
+                          deadline=self._deadline(self._cfg.shield.candidate_budget_s),
+                          now=self._clock)
+        if decision.intervened:
+            kind = "replaced" if (decision.reason or "").startswith("replaced") else "braked"
+            self.interventions[kind] += 1
+            log.info("shield %s the %s command: %s", kind, self._decision, decision.reason)
+        return decision.command
+
+    def _deadline(self, budget_s: float) -> float:
+        return math.inf if self._clock is None else self._clock() + budget_s
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "goal_odom": self.goal.tolist(),
+            "reached": self.reached,
+            "cycles": self.cycles,
+            "dwa_inadmissible": self.inadmissible,
+            "shield_interventions": dict(self.interventions),
+        }

@@ -1,0 +1,185 @@
+"""HIL: the real `safemove run --planner safemove` process with an exported, RANDOMLY INITIALISED
+actor (untrained: it proposes arbitrary commands) driving `safemove sim` in scenario (b) for 60 s.
+What is tested is the shield: no collision may be the robot's fault, whatever the actor says.
+
+The sim judges from ground truth but latches its first outcome, and in scenario (b) the crowd is
+oblivious, so a person may walk into the robot while it stands (not its fault) and hide what
+follows. So this test also judges every contact itself, polling the sim's ground truth at
+~10 Hz (a contact lasts ~1 s at the crowd's speeds): a contact is the robot's fault when the
+robot moves at it (|v| > the sim's 0.01 m/s), as the sim judges. The scenario file is paper_b
+with its time limit raised, so the world does not time out inside the 60 s run.
+
+Every check is strict except the last: at-fault contacts end the test as an expected failure
+(with the contacts in the reason) while the shield's blind-side problem (issue 5) is open.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sim_stub.emulator_process import EmulatorProcess
+from sim_stub.scenario import load_scenario
+from sim_stub.world import MOVING_SPEED_M_S, ROBOT_RADIUS_M, obstacle_shape
+
+pytestmark = pytest.mark.hil
+
+RUN_S = 60.0
+SCENARIOS = Path(__file__).resolve().parent.parent / "sim_stub" / "scenarios"
+
+
+def random_actor(tmp_path: Path) -> Path:
+    """A randomly initialised SafeMove-preset actor (400/300), exported as the CLI does."""
+    torch = pytest.importorskip("torch")
+    from export.checkpoint import load_checkpoint, save_actor_checkpoint
+    from export.mlp import MLPActor
+    from export.onnx_export import export_actor
+    from runtime.obs_spec import PRESETS
+    from sim_stub.recorded_observations import recorded_observations
+
+    spec = PRESETS["safemove"]
+    torch.manual_seed(0)
+    ckpt = tmp_path / "random_actor.pt"
+    save_actor_checkpoint(ckpt, MLPActor([spec.size, 400, 300, 2]), spec,
+                          "randomly initialised (untrained)")
+    out = tmp_path / "random_actor.onnx"
+    export_actor(load_checkpoint(ckpt, None), ckpt, out, recorded_observations(spec, 200),
+                 "simulated run")
+    return out
+
+
+def odom_goal(scenario_event: dict) -> tuple[float, float]:
+    """The world goal in the odom frame (the robot starts at the origin facing +x)."""
+    x, y, th = scenario_event["start"]
+    dx, dy = scenario_event["goal"][0] - x, scenario_event["goal"][1] - y
+    return math.cos(th) * dx + math.sin(th) * dy, -math.sin(th) * dx + math.cos(th) * dy
+
+
+class ContactJudge:
+    """Every robot–agent and robot–obstacle contact from polled ground truth."""
+
+    def __init__(self, scenario_path: Path) -> None:
+        scenario = load_scenario(str(scenario_path))
+        self.agent_reach = scenario.crowd.radius + ROBOT_RADIUS_M
+        self.shapes = [obstacle_shape(o) for o in scenario.obstacles]
+        self.touching: set[str] = set()
+        self.contacts: list[dict] = []
+        self.polls = 0
+        self.min_gap = math.inf
+        self._last: tuple[float, np.ndarray] | None = None
+
+    def poll(self, sim: EmulatorProcess, t: float) -> None:
+        """One look at ground truth, `t` seconds into the run."""
+        world = sim.request("world", "world")
+        v = float(sim.truth()["v"])
+        speed = abs(v)
+        x, y, th = world["robot_pose"]
+        p = np.array([x, y])
+        now: set[str] = set()
+        agents = np.asarray(world["agents"]).reshape(-1, 2)
+        if len(agents):
+            gaps = np.hypot(*(agents - p).T) - self.agent_reach
+            self.min_gap = min(self.min_gap, float(gaps.min()))
+            now |= {f"agent {k}" for k in np.flatnonzero(gaps < 0)}
+        now |= {f"obstacle {o}" for o, s in enumerate(self.shapes)
+                if s.distance(p[None])[0] < ROBOT_RADIUS_M}
+        for who in sorted(now - self.touching):
+            contact = {"t": round(t, 1), "with": who, "robot_speed": round(speed, 3),
+                       "at_fault": speed > MOVING_SPEED_M_S}
+            if who.startswith("agent"):  # where it was (0° ahead, ±43.5° the camera's edges)
+                k = int(who.split()[1])
+                rel = agents[k] - p
+                bearing = math.atan2(rel[1], rel[0]) - th
+                contact["bearing_deg"] = round(math.degrees(math.atan2(math.sin(bearing),
+                                                                      math.cos(bearing))))
+                # the robot's own speed toward the person (≤ 0: it was moving away)
+                contact["robot_closing_speed"] = round(v * math.cos(bearing), 3)
+                if self._last is not None and len(self._last[1]) == len(agents):
+                    vel = (agents[k] - self._last[1][k]) / max(t - self._last[0], 1e-3)
+                    contact["agent_speed"] = round(float(np.hypot(*vel)), 2)
+            self.contacts.append(contact)
+        self.touching = now
+        self._last = (t, agents)
+        self.polls += 1
+
+
+def test_random_actor_drives_60_s_in_scenario_b_with_no_collision_at_fault(tmp_path):
+    model = random_actor(tmp_path)
+    scenario = tmp_path / "paper_b_long.yaml"
+    text = (SCENARIOS / "paper_b.yaml").read_text()
+    scenario.write_text(text.replace("time_limit_s: 60.0", "time_limit_s: 600.0"))
+    judge = ContactJudge(scenario)
+    log_path = tmp_path / "run.err"
+    with EmulatorProcess([str(scenario), "--fps", "15"], module="sim_stub.sim_server") as sim:
+        event = next(e for e in sim.history if e.get("event") == "scenario")
+        gx, gy = odom_goal(event)
+        args = ["run", "--planner", "safemove", "--model", str(model), "--goal", f"{gx}",
+                f"{gy}", "--set", f"base.port={sim.link}", "--set", "depth.source=sim",
+                "--set", f"depth.sim_socket={sim.depth_socket}",
+                "--set", "loop.stats_interval_s=0"]
+        with log_path.open("w") as err:
+            proc = subprocess.Popen([sys.executable, "-m", "runtime.cli", *args],
+                                    stdout=subprocess.PIPE, stderr=err, text=True,
+                                    env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        try:
+            started = None
+            deadline = time.monotonic() + 30.0  # start-up: model warm-up, base, first depth
+            while proc.poll() is None:
+                now = time.monotonic()
+                if started is None:
+                    if "INIT -> RUNNING" in log_path.read_text():
+                        started = now
+                    elif now > deadline:
+                        raise AssertionError("never RUNNING:\n" + log_path.read_text()[-3000:])
+                else:
+                    judge.poll(sim, now - started)
+                    if now - started >= RUN_S + 0.5:
+                        proc.send_signal(signal.SIGINT)
+                        break
+                time.sleep(0.1)
+            stdout, _ = proc.communicate(timeout=30)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+        outcomes = [e for e in sim.history if e.get("event") == "outcome"]
+    stderr = log_path.read_text()
+    assert proc.returncode == 0, stderr[-3000:]
+    report = json.loads(stdout.strip().splitlines()[-1])
+    job = report["job"]
+    first = {}
+    for tr in report["transitions"]:
+        first.setdefault(tr["to"], tr["t"])
+    running_s = first["STOPPED"] - first["RUNNING"]  # RUNNING ⇄ DEGRADED in between counts
+    summary = {"running_s": round(running_s, 1), "cycles": report["cycles"],
+               "misses": report["misses"], "degraded_cycles": report["degraded_cycles"],
+               "distance_m": round(report["odometry"]["distance"], 2),
+               "shield_interventions": job["shield_interventions"],
+               "dwa_inadmissible": job["dwa_inadmissible"], "contacts": judge.contacts,
+               "polls": judge.polls, "min_gap_m": round(judge.min_gap, 3),
+               "sim_outcomes": [{k: e.get(k) for k in ("status", "collided_with", "at_fault")}
+                                for e in outcomes],
+               "reached": job["reached"]}
+    print("HIL safemove (randomly initialised actor):", json.dumps(summary))
+    assert job["policy"]["provenance"]["note"] == "randomly initialised (untrained)"
+    assert job["nonfinite_safe_stops"] == {}
+    assert report["state"] == "STOPPED"
+    assert running_s >= RUN_S or job["reached"], summary
+    assert judge.polls >= 10 * RUN_S * 0.5, summary  # the judge really watched
+    assert report["odometry"]["distance"] > 0.5, summary  # the actor did drive
+    assert isinstance(job["shield_interventions"], dict)
+    at_fault = [c for c in judge.contacts if c["at_fault"]] + [
+        e for e in outcomes if e.get("status") == "collision" and e.get("at_fault")]
+    if at_fault:  # everything above must hold; this part is the known open problem
+        pytest.xfail(
+            f"known, open (issue 5): {len(at_fault)} contacts while the robot moved (the sim's"
+            f" at-fault rule; bearing 0° = ahead, the camera sees ±43.5°): {at_fault}")
