@@ -45,6 +45,7 @@ admissible the result is the strongest braking sample in the window with admissi
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -180,16 +181,16 @@ def grid_spacing(cfg: DWAConfig, window: tuple[float, float, float, float]
     return (v_hi - v_lo) / max(cfg.n_v - 1, 1), (w_hi - w_lo) / max(cfg.n_omega - 1, 1)
 
 
-def _axes(cfg: DWAConfig, window: tuple[float, float, float, float]
-          ) -> tuple[np.ndarray, np.ndarray]:
+def grid_axes(cfg: DWAConfig, window: tuple[float, float, float, float]
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """The coarse grid's v and ω values (the reference loops over the same)."""
     v_lo, v_hi, w_lo, w_hi = window
     return np.linspace(v_lo, v_hi, cfg.n_v), np.linspace(w_lo, w_hi, cfg.n_omega)
 
 
-def coarse_samples(cfg: DWAConfig, window: tuple[float, float, float, float]) -> np.ndarray:
+def coarse_samples(vs: np.ndarray, ws: np.ndarray) -> np.ndarray:
     """(n_v·n_ω, 2), v-major order (the reference loops in the same order)."""
-    vs, ws = _axes(cfg, window)
-    return np.stack(np.meshgrid(vs, ws, indexing="ij"), axis=-1).reshape(-1, 2)
+    return np.column_stack([np.repeat(vs, len(ws)), np.tile(ws, len(vs))])
 
 
 def _unit_arcs(omegas: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -212,11 +213,10 @@ def rollout(samples: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, np.ndar
     return ux * v, uy * v, times[:, None] * w
 
 
-def _coarse_rollout(cfg: DWAConfig, window: tuple[float, float, float, float],
-                    times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _coarse_rollout(vs: np.ndarray, ws: np.ndarray, times: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
     """The coarse grid's rollout, float32 (steps, n_v·n_ω): the arcs depend on ω only and
     scale with v, so n_ω arcs are computed, not n_v·n_ω."""
-    vs, ws = _axes(cfg, window)
     ux, uy = _unit_arcs(ws.astype(np.float32), times.astype(np.float32))
     v = vs.astype(np.float32)[None, :, None]
     steps = len(times)
@@ -278,7 +278,8 @@ def prepare(cfg: DWAConfig, lim: LimitsConfig, v0: float, w0: float, points: np.
     times = (np.arange(steps) + 1) * cfg.dt
     r_eff = cfg.robot_radius_m + cfg.safety_margin_m
     cell = cfg.grid_cell_m
-    cx, cy = _coarse_rollout(cfg, window, times)
+    vs, ws = grid_axes(cfg, window)
+    cx, cy = _coarse_rollout(vs, ws, times)
     step_lo, step_hi = _step_boxes(cfg, window, times, cx, cy)
     # every point within clearance_cap + r_eff of any rollout point falls inside the grid, so
     # the capped clearance never misses one
@@ -290,7 +291,7 @@ def prepare(cfg: DWAConfig, lim: LimitsConfig, v0: float, w0: float, points: np.
     dist_grid = _distance_grid(pts, lo, shape, cell) if len(pts) else None
     reach = max(abs(window[0]), abs(window[1])) * float(times[-1])
     clusters = _density_clusters(cfg, pts, reach) if len(pts) else np.zeros((0, 2))
-    return Prepared(window, steps, times, r_eff, coarse_samples(cfg, window), cx, cy, step_lo,
+    return Prepared(window, steps, times, r_eff, coarse_samples(vs, ws), cx, cy, step_lo,
                     step_hi, (float(lo[0]), float(lo[1])), shape, dist_grid, clusters)
 
 
@@ -422,6 +423,16 @@ def _best(total: np.ndarray, admissible: np.ndarray) -> int:
     return int(np.argmax(np.where(admissible, total, -np.inf)))
 
 
+@functools.lru_cache(maxsize=8)
+def _refine_offsets(n: int) -> np.ndarray:
+    """The n×n refinement grid in units of the current spacing, without its centre."""
+    offs = np.linspace(-1.0, 1.0, n)
+    grid = np.stack(np.meshgrid(offs, offs, indexing="ij"), -1).reshape(-1, 2)
+    grid = grid[(grid != 0).any(axis=1)]
+    grid.flags.writeable = False
+    return grid
+
+
 def interleaved_blocks(n: int, block: int) -> list[np.ndarray]:
     """Indices 0..n-1 in blocks of at most `block`; block b holds b, b + nb, b + 2·nb, … so
     every prefix of blocks spans the whole window (a cut-short coarse grid is a sparser grid)."""
@@ -486,18 +497,19 @@ def plan(
         else:
             parts.append(ev.evaluate(coarse[idx], prep.coarse_x[:, idx], prep.coarse_y[:, idx]))
         slowest = max(slowest, clock.lap())
-    order = np.concatenate(blocks[: len(parts)])
-    back = np.argsort(order, kind="stable")  # evaluated samples back into v-major order
-    samples = coarse[order][back]
-    raw = {k: np.concatenate([p[k] for p in parts])[back] for k in parts[0]}
+    if len(blocks) == 1:
+        samples, raw = coarse, parts[0]
+    else:
+        order = np.concatenate(blocks[: len(parts)])
+        back = np.argsort(order, kind="stable")  # evaluated samples back into v-major order
+        samples = coarse[order][back]
+        raw = {k: np.concatenate([p[k] for p in parts])[back] for k in parts[0]}
     _, total = _score(cfg, lim, raw)
     best = _best(total, raw["admissible"])
     rounds = 0
     v_lo, v_hi, w_lo, w_hi = prep.window
     dv, dw = grid_spacing(cfg, prep.window)
-    offs = np.linspace(-1.0, 1.0, cfg.refine_n)
-    grid = np.stack(np.meshgrid(offs, offs, indexing="ij"), -1).reshape(-1, 2)
-    grid = grid[(grid != 0).any(axis=1)]
+    grid = _refine_offsets(cfg.refine_n)
     # a round has no more samples than a coarse block: the slowest block bounds the first round
     while best >= 0 and rounds < cfg.refine_max_rounds and (dv > 0 or dw > 0):
         if not clock.allows(slowest):
@@ -523,7 +535,9 @@ def plan(
         best = len(samples) - 1
         evaluated += 1
     norm, total = _score(cfg, lim, raw)
-    bx, by, bth = (a[:, 0] for a in rollout(samples[best:best + 1], prep.times))
+    bv, bw = float(samples[best, 0]), float(samples[best, 1])
+    ux, uy = _unit_arcs(np.array([bw]), prep.times)
+    bx, by, bth = ux[:, 0] * bv, uy[:, 0] * bv, prep.times * bw
     return DWAResult(
         samples=samples, heading=norm["heading"], clearance=norm["clearance"],
         velocity=norm["velocity"], density=norm["density"], total=total,

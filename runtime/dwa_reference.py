@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from runtime.dwa import DWAConfig, braking_sample, prepare, term_scales
+from runtime.dwa import DWAConfig, braking_sample, grid_axes, prepare, term_scales
 from runtime.limits import LimitsConfig
 
 
@@ -56,9 +56,7 @@ def plan_reference(cfg: DWAConfig, lim: LimitsConfig, v0: float, omega0: float, 
     clusters = prep.clusters.tolist()
     grid = None if prep.dist_grid is None else prep.dist_grid.tolist()
     gx, gy = float(goal[0]), float(goal[1])
-    v_lo, v_hi, w_lo, w_hi = prep.window
-    vs = np.linspace(v_lo, v_hi, cfg.n_v).tolist()
-    ws = np.linspace(w_lo, w_hi, cfg.n_omega).tolist()
+    vs, ws = (axis.tolist() for axis in grid_axes(cfg, prep.window))
 
     samples, raws = [], {"heading": [], "clearance": [], "velocity": [], "density": []}
     admissible = []
