@@ -23,7 +23,7 @@ import math
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -45,7 +45,7 @@ from runtime.types import STOP, DepthFrame, Odometry
 from runtime.world_model import WorldModel, WorldState
 from sim_stub.base_sim import BasePhysics, SparkBaseSim
 from sim_stub.depth_render import DepthRenderer
-from sim_stub.scenario import load_scenario
+from sim_stub.scenario import load_scenario, with_crowd
 from sim_stub.sim_server import BASE_LINK_HEIGHT_M, scene_from
 from sim_stub.world import World
 
@@ -107,11 +107,8 @@ def run_episode(scenario_name: str, seed: int, settings: EvalSettings) -> Episod
     """One seeded episode to its judged end (see the module docs)."""
     loaded = load_config(settings.config_path, list(settings.overrides))
     cfg, cal = loaded.config, loaded.calibration
-    scenario = load_scenario(scenario_name)
-    if settings.crowd != "scenario":
-        scenario = replace(scenario, crowd=replace(scenario.crowd,
-                                                   reactive=settings.crowd == "reactive"))
-    world = World(scenario, seed=seed, limits=cfg.limits)
+    world = World(with_crowd(load_scenario(scenario_name), settings.crowd), seed=seed,
+                  limits=cfg.limits)
     start = (world.robot.x, world.robot.y, world.robot.theta)
     base = SparkBaseSim(BasePhysics(seed=seed), "stream", watchdog_s=0.0, t0=0.0)
     renderer = DepthRenderer(D435_848x480, cal.camera, base_z=BASE_LINK_HEIGHT_M, seed=seed)

@@ -221,3 +221,17 @@ def load_scenario(path_or_name: str | Path) -> Scenario:
             names = ", ".join(available_scenarios())
             raise ConfigError(f"scenario '{text}': no such shipped scenario (have: {names})")
     return parse_scenario(load_yaml_file(path, "scenario file"), str(path))
+
+
+CROWD_MODES = ("scenario", "reactive", "oblivious")
+
+
+def with_crowd(scenario: Scenario, mode: str) -> Scenario:
+    """The scenario with its crowd made to see and avoid the robot ("reactive") or not
+    ("oblivious"); "scenario" keeps what the file says."""
+    if mode == "scenario":
+        return scenario
+    if mode not in CROWD_MODES:
+        raise ValueError(f"crowd mode must be one of {CROWD_MODES}, got {mode!r}")
+    return dataclasses.replace(scenario, crowd=dataclasses.replace(
+        scenario.crowd, reactive=mode == "reactive"))

@@ -31,7 +31,7 @@ from runtime.types import DepthFrame
 from sim_stub.base_emulator import PtyBaseEmulator
 from sim_stub.base_sim import BasePhysics, SparkBaseSim
 from sim_stub.depth_render import Box, Cylinder, DepthRenderer, Scene, wall
-from sim_stub.scenario import BoxSpec, CylinderSpec, load_scenario
+from sim_stub.scenario import CROWD_MODES, BoxSpec, CylinderSpec, load_scenario, with_crowd
 from sim_stub.world import Snapshot, World
 
 log = logging.getLogger("safemove.sim")
@@ -220,6 +220,9 @@ def build_arg_parser() -> argparse.ArgumentParser:
     p.add_argument("--log-depth", action="store_true",
                    help="an event per depth frame sent, with the running digest (for tests)")
     p.add_argument("--seed", type=int, default=None, help="episode seed (default: the scenario's)")
+    p.add_argument("--crowd", choices=CROWD_MODES, default="scenario",
+                   help="whether the agents see and avoid the robot (default: as the scenario"
+                        " says)")
     p.add_argument("--goal", type=int, default=None, help="goal index (default: drawn from seed)")
     p.add_argument("--watchdog-s", type=float, default=0.5, help="the base's own command watchdog")
     p.add_argument("--config", type=Path, default=None,
@@ -237,7 +240,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         loaded = load_config(args.config, args.overrides)
-        scenario = load_scenario(args.scenario)
+        scenario = with_crowd(load_scenario(args.scenario), args.crowd)
         world = World(scenario, seed=args.seed, goal_index=args.goal, limits=loaded.config.limits)
     except UserError as exc:
         print(f"safemove sim: error: {exc}", file=sys.stderr)
@@ -260,7 +263,8 @@ def main(argv: list[str] | None = None) -> int:
     emulator.emit({"event": "scenario", "name": scenario.name, "seed": world.seed,
                    "goal": world.goal.tolist(),
                    "start": [world.robot.x, world.robot.y, world.robot.theta],
-                   "depth_socket": str(args.depth_socket), "fps": args.fps})
+                   "depth_socket": str(args.depth_socket), "fps": args.fps,
+                   "crowd_reactive": scenario.crowd.reactive})
     link.start()
     try:
         return emulator.run(sys.stdin.fileno())

@@ -16,7 +16,6 @@ Every check is strict except the last: at-fault contacts end the test as an expe
 from __future__ import annotations
 
 import json
-import math
 import os
 import signal
 import subprocess
@@ -24,12 +23,10 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
+from hil_judge import ContactJudge, odom_goal
 
 from sim_stub.emulator_process import EmulatorProcess
-from sim_stub.scenario import load_scenario
-from sim_stub.world import MOVING_SPEED_M_S, ROBOT_RADIUS_M, obstacle_shape
 
 pytestmark = pytest.mark.hil
 
@@ -55,61 +52,6 @@ def random_actor(tmp_path: Path) -> Path:
     export_actor(load_checkpoint(ckpt, None), ckpt, out, recorded_observations(spec, 200),
                  "simulated run")
     return out
-
-
-def odom_goal(scenario_event: dict) -> tuple[float, float]:
-    """The world goal in the odom frame (the robot starts at the origin facing +x)."""
-    x, y, th = scenario_event["start"]
-    dx, dy = scenario_event["goal"][0] - x, scenario_event["goal"][1] - y
-    return math.cos(th) * dx + math.sin(th) * dy, -math.sin(th) * dx + math.cos(th) * dy
-
-
-class ContactJudge:
-    """Every robot–agent and robot–obstacle contact from polled ground truth."""
-
-    def __init__(self, scenario_path: Path) -> None:
-        scenario = load_scenario(str(scenario_path))
-        self.agent_reach = scenario.crowd.radius + ROBOT_RADIUS_M
-        self.shapes = [obstacle_shape(o) for o in scenario.obstacles]
-        self.touching: set[str] = set()
-        self.contacts: list[dict] = []
-        self.polls = 0
-        self.min_gap = math.inf
-        self._last: tuple[float, np.ndarray] | None = None
-
-    def poll(self, sim: EmulatorProcess, t: float) -> None:
-        """One look at ground truth, `t` seconds into the run."""
-        world = sim.request("world", "world")
-        v = float(sim.truth()["v"])
-        speed = abs(v)
-        x, y, th = world["robot_pose"]
-        p = np.array([x, y])
-        now: set[str] = set()
-        agents = np.asarray(world["agents"]).reshape(-1, 2)
-        if len(agents):
-            gaps = np.hypot(*(agents - p).T) - self.agent_reach
-            self.min_gap = min(self.min_gap, float(gaps.min()))
-            now |= {f"agent {k}" for k in np.flatnonzero(gaps < 0)}
-        now |= {f"obstacle {o}" for o, s in enumerate(self.shapes)
-                if s.distance(p[None])[0] < ROBOT_RADIUS_M}
-        for who in sorted(now - self.touching):
-            contact = {"t": round(t, 1), "with": who, "robot_speed": round(speed, 3),
-                       "at_fault": speed > MOVING_SPEED_M_S}
-            if who.startswith("agent"):  # where it was (0° ahead, ±43.5° the camera's edges)
-                k = int(who.split()[1])
-                rel = agents[k] - p
-                bearing = math.atan2(rel[1], rel[0]) - th
-                contact["bearing_deg"] = round(math.degrees(math.atan2(math.sin(bearing),
-                                                                      math.cos(bearing))))
-                # the robot's own speed toward the person (≤ 0: it was moving away)
-                contact["robot_closing_speed"] = round(v * math.cos(bearing), 3)
-                if self._last is not None and len(self._last[1]) == len(agents):
-                    vel = (agents[k] - self._last[1][k]) / max(t - self._last[0], 1e-3)
-                    contact["agent_speed"] = round(float(np.hypot(*vel)), 2)
-            self.contacts.append(contact)
-        self.touching = now
-        self._last = (t, agents)
-        self.polls += 1
 
 
 def test_random_actor_drives_60_s_in_scenario_b_with_no_collision_at_fault(tmp_path):

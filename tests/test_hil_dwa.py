@@ -1,0 +1,54 @@
+"""HIL: the real `safemove run --planner dwa` process drives `safemove sim` in scenario (a) to its
+goal: depth over the sim's socket, the base over a pseudo-terminal, every command through the
+shield. The world judges success from ground truth; every contact is judged as well.
+
+Episode: seed 4 with the crowd made reactive (the people see the robot and avoid it). The
+shipped paper scenarios are oblivious, which is what `safemove eval` scores; with an oblivious
+crowd some episodes end with a person walking into the robot whatever it does, which would make
+a single HIL run a coin toss rather than a test of the runtime's pipeline. In the lock-stepped
+harness this episode succeeds in ~27 s with the people never nearer than 0.3 m.
+"""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+from hil_judge import ContactJudge, odom_goal
+
+from sim_stub.emulator_process import EmulatorProcess
+
+pytestmark = pytest.mark.hil
+
+SCENARIO = "paper_a"
+TIMEOUT_S = 90.0
+
+
+def test_dwa_reaches_the_goal_in_scenario_a(safemove):
+    judge = ContactJudge(SCENARIO)
+    with EmulatorProcess([SCENARIO, "--seed", "4", "--crowd", "reactive", "--fps", "15"],
+                         module="sim_stub.sim_server") as sim:
+        event = next(e for e in sim.history if e.get("event") == "scenario")
+        assert event["crowd_reactive"] is True
+        gx, gy = odom_goal(event)
+        run = safemove(["run", "--planner", "dwa", "--goal", f"{gx}", f"{gy}",
+                        "--set", f"base.port={sim.link}", "--set", "depth.source=sim",
+                        "--set", f"depth.sim_socket={sim.depth_socket}",
+                        "--set", "loop.stats_interval_s=0"])
+        t0 = time.monotonic()
+        while run.proc.poll() is None and time.monotonic() - t0 < TIMEOUT_S:
+            judge.poll(sim, time.monotonic() - t0)
+            time.sleep(0.1)
+        assert run.wait(timeout=10) == 0, run.stderr[-3000:]
+        world = sim.request("world", "world")
+    report = run.report()
+    job = report["job"]
+    summary = {"world": world["status"], "reached": job["reached"],
+               "interventions": job["shield_interventions"], "contacts": judge.contacts,
+               "min_gap_m": round(judge.min_gap, 3), "cycles": report["cycles"],
+               "misses": report["misses"]}
+    print("HIL dwa:", summary)
+    assert report["state"] == "STOPPED" and report["reason"] == "job finished", summary
+    assert job["reached"], summary
+    assert world["status"] == "success", summary  # ground truth, not odometry, says so
+    assert judge.polls > 50 and not [c for c in judge.contacts if c["at_fault"]], summary
