@@ -118,28 +118,36 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    """The main job for now: the runtime driving the simulated robot (world, depth, base)."""
-    from runtime.app import run_job
-    from runtime.drive import DriveJob, Segment
-    from runtime.types import Twist
-    from sim_stub.emulator_process import EmulatorProcess
+    """The main job: the runtime drives the simulated robot (world, depth, base) to the
+    scenario's goal with the DWA planner, every command through the shield. No trained policy
+    ships yet; `run --planner safemove --model` runs one."""
+    import time
 
-    side = [Segment(Twist(0.2, 0.0), 2.5), Segment(Twist(0.0, 0.8), 1.9635)]  # 0.5 m, then 90°
-    with EmulatorProcess([args.scenario], module="sim_stub.sim_server") as sim:
+    from runtime.app import run_job
+    from runtime.dwa_job import DWAJob
+    from sim_stub.emulator_process import EmulatorProcess
+    from sim_stub.evaluate import goal_in_odom
+
+    sim_args = [args.scenario, "--seed", str(args.seed), "--crowd", args.crowd]
+    with EmulatorProcess(sim_args, module="sim_stub.sim_server") as sim:
+        event = next(e for e in sim.history if e.get("event") == "scenario")
+        goal = goal_in_odom(tuple(event["start"]), event["goal"])
         loaded = load_config(args.config, [
             *args.overrides, f"base.port={sim.link}", "depth.source=sim",
             f"depth.sim_socket={sim.depth_socket}",
         ])
-        job = DriveJob(side * 4, 1.0 / loaded.config.loop.control_hz)
+        job = DWAJob(goal, loaded.config, time.monotonic)
         report, link_stats = run_job(loaded, job)
         world = sim.request("world", "world")
         truth = sim.truth()
     o = report.odometry
     print(
-        f"drove an open-loop 0.5 m square in scenario {args.scenario} (teleoperation: no planner"
-        f" yet): odometry ({o.x:+.3f}, {o.y:+.3f}) m vs base truth ({truth['x']:+.3f},"
-        f" {truth['y']:+.3f}) m; {report.depth.frames if report.depth else 0} depth frames,"
-        f" {report.cycles} cycles, {report.misses} missed deadlines; world says: {world['status']}",
+        f"DWA planner in scenario {args.scenario} (seed {args.seed}, {args.crowd} crowd) to the"
+        f" goal {goal[0]:+.2f}, {goal[1]:+.2f} m (odom): reached={job.reached}; world says:"
+        f" {world['status']}; odometry ({o.x:+.3f}, {o.y:+.3f}) m vs base truth"
+        f" ({truth['x']:+.3f}, {truth['y']:+.3f}) m; {report.cycles} cycles,"
+        f" {report.misses} missed deadlines, shield interventions"
+        f" {job.summary()['shield_interventions']}",
         file=sys.stderr,
     )
     return _finish({**report.as_dict(), "job": job.summary(), "link": link_stats, "truth": truth,
@@ -307,10 +315,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--script", type=Path, help="YAML list of {v, omega, duration} segments")
     p.set_defaults(func=cmd_drive)
 
-    p = sub.add_parser("demo", help="the runtime driving the simulated robot through a square")
+    p = sub.add_parser("demo", help="the runtime driving the simulated robot to a goal (DWA"
+                                     " planner through the shield)")
     _add_config_args(p)
-    p.add_argument("--scenario", default="static_clutter",
-                   help="scenario to drive in (default static_clutter)")
+    p.add_argument("--scenario", default="paper_a",
+                   help="scenario to drive in (default paper_a)")
+    p.add_argument("--seed", type=int, default=4, help="episode seed (default 4)")
+    p.add_argument("--crowd", choices=("scenario", "reactive", "oblivious"), default="reactive",
+                   help="whether the people see the robot (default reactive)")
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("config", help="inspect the configuration")

@@ -9,15 +9,14 @@ from pathlib import Path
 import numpy as np
 
 from sim_stub.emulator_process import EmulatorProcess
+from sim_stub.evaluate import goal_in_odom
 from sim_stub.scenario import load_scenario
 from sim_stub.world import MOVING_SPEED_M_S, ROBOT_RADIUS_M, obstacle_shape
 
 
 def odom_goal(scenario_event: dict) -> tuple[float, float]:
     """The world goal in the odom frame (the robot starts at the origin facing +x)."""
-    x, y, th = scenario_event["start"]
-    dx, dy = scenario_event["goal"][0] - x, scenario_event["goal"][1] - y
-    return math.cos(th) * dx + math.sin(th) * dy, -math.sin(th) * dx + math.cos(th) * dy
+    return goal_in_odom(tuple(scenario_event["start"]), scenario_event["goal"])
 
 
 class ContactJudge:
