@@ -213,25 +213,29 @@ def rollout(samples: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, np.ndar
     return ux * v, uy * v, times[:, None] * w
 
 
-def _coarse_rollout(vs: np.ndarray, ws: np.ndarray, times: np.ndarray
+def _coarse_rollout(vs: np.ndarray, ux: np.ndarray, uy: np.ndarray
                     ) -> tuple[np.ndarray, np.ndarray]:
-    """The coarse grid's rollout, float32 (steps, n_v·n_ω): the arcs depend on ω only and
-    scale with v, so n_ω arcs are computed, not n_v·n_ω."""
-    ux, uy = _unit_arcs(ws.astype(np.float32), times.astype(np.float32))
+    """The coarse grid's rollout, float32 (steps, n_v·n_ω), from the unit arcs of its ω values
+    (steps, n_ω): the arcs depend on ω only and scale with v, so n_ω arcs are computed, not
+    n_v·n_ω."""
     v = vs.astype(np.float32)[None, :, None]
-    steps = len(times)
+    steps = len(ux)
+    ux, uy = ux.astype(np.float32), uy.astype(np.float32)
     return ((ux[:, None, :] * v).reshape(steps, -1), (uy[:, None, :] * v).reshape(steps, -1))
 
 
 def _step_boxes(cfg: DWAConfig, window: tuple[float, float, float, float], times: np.ndarray,
-                cx: np.ndarray, cy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                ux: np.ndarray, uy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per step, an axis-aligned box holding that step's point for EVERY velocity in the window:
-    the coarse grid's box grown by how far a window velocity's point can be from the nearest
-    coarse sample's (|∂p/∂v| ≤ t, |∂p/∂ω| ≤ |v|·t²/2), plus float32 rounding."""
+    the coarse grid's box (x = v·ux(ω, t) is linear in v, so its extremes over v are at the
+    window's ends) grown by how far a window velocity's point can be from the nearest coarse
+    sample's (|∂p/∂v| ≤ t, |∂p/∂ω| ≤ |v|·t²/2), plus float32 rounding."""
     dv, dw = grid_spacing(cfg, window)
     grow = times * dv + max(abs(window[0]), abs(window[1])) * times**2 * 0.5 * dw + 1e-4
-    lo = np.stack([cx.min(axis=1), cy.min(axis=1)], -1).astype(np.float64) - grow[:, None]
-    hi = np.stack([cx.max(axis=1), cy.max(axis=1)], -1).astype(np.float64) + grow[:, None]
+    ends = np.array([window[0], window[1]], dtype=np.float64)[:, None, None]
+    px, py = ends * ux, ends * uy  # (2, steps, n_ω)
+    lo = np.stack([px.min(axis=(0, 2)), py.min(axis=(0, 2))], -1) - grow[:, None]
+    hi = np.stack([px.max(axis=(0, 2)), py.max(axis=(0, 2))], -1) + grow[:, None]
     return lo, hi
 
 
@@ -279,8 +283,9 @@ def prepare(cfg: DWAConfig, lim: LimitsConfig, v0: float, w0: float, points: np.
     r_eff = cfg.robot_radius_m + cfg.safety_margin_m
     cell = cfg.grid_cell_m
     vs, ws = grid_axes(cfg, window)
-    cx, cy = _coarse_rollout(vs, ws, times)
-    step_lo, step_hi = _step_boxes(cfg, window, times, cx, cy)
+    ux, uy = _unit_arcs(ws, times)
+    cx, cy = _coarse_rollout(vs, ux, uy)
+    step_lo, step_hi = _step_boxes(cfg, window, times, ux, uy)
     # every point within clearance_cap + r_eff of any rollout point falls inside the grid, so
     # the capped clearance never misses one
     margin = cfg.clearance_cap_m + r_eff + 2.0 * cell
@@ -341,15 +346,15 @@ class _Evaluator:
         prep = self.prep
         if prep.dist_grid is None:
             return np.full(x.shape, np.inf, np.float32)
-        nx, ny = prep.shape
+        ny = prep.shape[1]
         inv = np.float32(1.0 / self.cfg.grid_cell_m)
+        # every window rollout lies in its step box and the grid reaches beyond every box
+        # (prepare), so the indices are in range; mode="clip" only guards the memory access
         ix = ((x - np.float32(prep.origin[0])) * inv).astype(np.int32)
         iy = ((y - np.float32(prep.origin[1])) * inv).astype(np.int32)
-        np.clip(ix, 0, nx - 1, out=ix)
-        np.clip(iy, 0, ny - 1, out=iy)
         ix *= ny
         ix += iy
-        return self.grid_flat.take(ix)
+        return self.grid_flat.take(ix, mode="clip")
 
     def evaluate(self, samples: np.ndarray, x: np.ndarray | None = None,
                  y: np.ndarray | None = None) -> dict[str, np.ndarray]:
