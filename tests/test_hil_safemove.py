@@ -10,7 +10,7 @@ robot moves at it (|v| > the sim's 0.01 m/s), as the sim judges. The scenario fi
 with its time limit raised, so the world does not time out inside the 60 s run.
 
 Every check is strict except the last: at-fault contacts end the test as an expected failure
-(with the contacts in the reason) while the shield's blind-side problem (issue 5) is open.
+(with the contacts in the reason) while the blind-side problem (issue 6) is open.
 """
 
 from __future__ import annotations
@@ -123,5 +123,5 @@ def test_random_actor_drives_60_s_in_scenario_b_with_no_collision_at_fault(tmp_p
         e for e in outcomes if e.get("status") == "collision" and e.get("at_fault")]
     if at_fault:  # everything above must hold; this part is the known open problem
         pytest.xfail(
-            f"known, open (issue 5): {len(at_fault)} contacts while the robot moved (the sim's"
+            f"known, open (issue 6): {len(at_fault)} contacts while the robot moved (the sim's"
             f" at-fault rule; bearing 0° = ahead, the camera sees ±43.5°): {at_fault}")
