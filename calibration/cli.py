@@ -17,7 +17,7 @@ from typing import Any
 from calibration.calibration_file import output_path, write_calibration
 from runtime.app import on_stop_signals
 from runtime.calibration_schema import Calibration
-from runtime.cli import _add_config_args, _finite_float, _int_at_least
+from runtime.cli_args import add_config_args, finite_float, int_at_least
 from runtime.config import LoadedConfig, load_config
 from runtime.errors import UserError
 
@@ -29,7 +29,7 @@ def _print_json(obj: Any) -> None:
 
 
 def _positive(text: str) -> float:
-    value = _finite_float(text)
+    value = finite_float(text)
     if value <= 0:
         raise argparse.ArgumentTypeError(f"must be greater than 0, got {text!r}")
     return value
@@ -279,7 +279,7 @@ def cmd_check(args: argparse.Namespace) -> int:
 def _add_depth_args(p: argparse.ArgumentParser, frames: int) -> None:
     p.add_argument("--recording", type=Path,
                    help="a .db3 recording instead of the configured depth source")
-    p.add_argument("--frames", type=_int_at_least(MIN_FRAMES), default=frames,
+    p.add_argument("--frames", type=int_at_least(MIN_FRAMES), default=frames,
                    help=f"depth frames to average (default {frames}, at least {MIN_FRAMES})")
     p.add_argument("--timeout", type=_positive, default=20.0,
                    help="seconds to wait for frames from a live source (default 20)")
@@ -301,13 +301,13 @@ def add_calibrate_parser(sub: Any) -> None:
     cp = csub.add_parser(
         "camera", help="camera height, pitch, roll from the floor; x, y, yaw from a ChArUco"
                        " board at a measured pose (--board-pose)")
-    _add_config_args(cp)
+    add_config_args(cp)
     _add_depth_args(cp, 30)
     _add_output_args(cp)
-    cp.add_argument("--board-pose", nargs=4, type=_finite_float, metavar=("X", "Y", "Z", "YAW"),
+    cp.add_argument("--board-pose", nargs=4, type=finite_float, metavar=("X", "Y", "Z", "YAW"),
                     help="the board pattern's centre in base_link (m) and its yaw (deg; 0 ="
                          " upright, facing the robot squarely)")
-    cp.add_argument("--board-squares", nargs=2, type=_int_at_least(2), default=(7, 5),
+    cp.add_argument("--board-squares", nargs=2, type=int_at_least(2), default=(7, 5),
                     metavar=("NX", "NY"), help="squares across and down (default 7 5)")
     cp.add_argument("--board-square-m", type=_positive, default=0.055,
                     help="square side as printed (m, default 0.055)")
@@ -320,20 +320,20 @@ def add_calibrate_parser(sub: Any) -> None:
     op = csub.add_parser(
         "odometry", help="guided runs: encoder mapping, straight run (you measure it), turns in"
                          " place, UMBmark squares; writes m/tick, axle, mapping")
-    _add_config_args(op)
+    add_config_args(op)
     _add_output_args(op)
     op.add_argument("--length", type=_positive, default=2.0,
                     help="straight run length (m, default 2)")
-    op.add_argument("--turns", type=_int_at_least(1), default=2,
+    op.add_argument("--turns", type=int_at_least(1), default=2,
                     help="full in-place turns each way (default 2)")
-    op.add_argument("--squares", type=_int_at_least(0), default=5,
+    op.add_argument("--squares", type=int_at_least(0), default=5,
                     help="UMBmark squares per direction (default 5; 0 skips UMBmark)")
     op.add_argument("--side", type=_positive, default=1.0,
                     help="UMBmark square side (m, default 1)")
     op.set_defaults(func=cmd_odometry)
 
     kp = csub.add_parser("check", help="pass/fail health check of the current calibration")
-    _add_config_args(kp)
+    add_config_args(kp)
     _add_depth_args(kp, 10)
     kp.add_argument("--no-motion", action="store_true",
                     help="skip the encoder check (it turns the robot left for a second)")

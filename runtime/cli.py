@@ -10,23 +10,16 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import math
 import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from runtime.cli_args import add_config_args, finite_float, int_at_least
 from runtime.config import LoadedConfig, load_config, render_calibration, render_config
 from runtime.errors import UserError
 
 log = logging.getLogger("safemove")
-
-
-def _add_config_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--config", type=Path, default=None,
-                   help="config file (default: the shipped runtime/default_config.yaml)")
-    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                   help="override one config key, e.g. --set base.port=/dev/ttyUSB0 (repeatable)")
 
 
 def _load(args: argparse.Namespace) -> LoadedConfig:
@@ -251,32 +244,6 @@ def cmd_base_emulator(args: argparse.Namespace) -> int:
 # --- parser ------------------------------------------------------------------------------------
 
 
-def _finite_float(text: str) -> float:
-    """argparse type: a finite number (NaN or inf would reach the wheels as a command)."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"must be finite, got {text!r}")
-    return value
-
-
-def _int_at_least(minimum: int) -> Callable[[str], int]:
-    """argparse type: an integer ≥ minimum."""
-
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-        if value < minimum:
-            raise argparse.ArgumentTypeError(f"must be at least {minimum}, got {value}")
-        return value
-
-    return parse
-
-
 def _bench_parser(bsub: Any, name: str, help_text: str, func: Callable[[argparse.Namespace], int]
                   ) -> argparse.ArgumentParser:
     """A `bench` subcommand: every benchmark prints figures and ends with one JSON line."""
@@ -296,28 +263,28 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("run", help="run the control loop as the service does")
-    _add_config_args(p)
+    add_config_args(p)
     p.add_argument("--planner", choices=("hold", "dwa", "safemove"), default="hold",
                    help="hold: keep the base stopped with everything else live; dwa: the DWA"
                         " baseline to --goal, through the shield; safemove: the TD3 actor"
                         " --model to --goal, through the shield")
-    p.add_argument("--goal", nargs=2, type=_finite_float, metavar=("X", "Y"),
+    p.add_argument("--goal", nargs=2, type=finite_float, metavar=("X", "Y"),
                    help="goal in the odom frame (m): the robot starts at the origin facing +x")
     p.add_argument("--model", type=Path, metavar="FILE.onnx",
                    help="the actor for --planner safemove, written by `safemove export`")
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser("drive", help="teleoperate the base: a fixed twist or a scripted list")
-    _add_config_args(p)
-    p.add_argument("--twist", nargs=2, type=_finite_float, metavar=("V", "OMEGA"), default=(0.0, 0.0),
+    add_config_args(p)
+    p.add_argument("--twist", nargs=2, type=finite_float, metavar=("V", "OMEGA"), default=(0.0, 0.0),
                    help="body velocity: V m/s forward, OMEGA rad/s counter-clockwise")
-    p.add_argument("--duration", type=_finite_float, help="seconds to hold --twist")
+    p.add_argument("--duration", type=finite_float, help="seconds to hold --twist")
     p.add_argument("--script", type=Path, help="YAML list of {v, omega, duration} segments")
     p.set_defaults(func=cmd_drive)
 
     p = sub.add_parser("demo", help="the runtime driving the simulated robot to a goal (DWA"
                                      " planner through the shield)")
-    _add_config_args(p)
+    add_config_args(p)
     p.add_argument("--scenario", default="paper_a",
                    help="scenario to drive in (default paper_a)")
     p.add_argument("--seed", type=int, default=4, help="episode seed (default 4)")
@@ -328,38 +295,38 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("config", help="inspect the configuration")
     csub = p.add_subparsers(dest="config_command", required=True, metavar="ACTION")
     cp = csub.add_parser("show", help="validate and print the effective config and calibration")
-    _add_config_args(cp)
+    add_config_args(cp)
     cp.set_defaults(func=cmd_config_show)
 
     p = sub.add_parser("bench", help="benchmarks; the last line of output is one JSON object")
     bsub = p.add_subparsers(dest="bench_command", required=True, metavar="WHAT")
     bp = _bench_parser(bsub, "loop", "the drive loop against the emulated base", cmd_bench_loop)
-    _add_config_args(bp)
-    bp.add_argument("--cycles", type=_int_at_least(1), default=400,
+    add_config_args(bp)
+    bp.add_argument("--cycles", type=int_at_least(1), default=400,
                     help="control cycles to run (default 400)")
 
     bp = _bench_parser(bsub, "sim", "depth rendering, world stepping and playback speed",
                        cmd_bench_sim)
-    bp.add_argument("--frames", type=_int_at_least(1), default=60,
+    bp.add_argument("--frames", type=int_at_least(1), default=60,
                     help="frames to render (default 60)")
-    bp.add_argument("--steps", type=_int_at_least(1), default=500,
+    bp.add_argument("--steps", type=int_at_least(1), default=500,
                     help="world steps (default 500)")
 
     bp = _bench_parser(bsub, "perception", "world-model stages per frame at 848x480",
                        cmd_bench_perception)
-    bp.add_argument("--frames", type=_int_at_least(2), default=100,
+    bp.add_argument("--frames", type=int_at_least(2), default=100,
                     help="frames to process (default 100; the first is not timed)")
 
     bp = _bench_parser(bsub, "planner", "DWA: vectorised vs per-sample reference, p99, budget",
                        cmd_bench_planner)
-    bp.add_argument("--worlds", type=_int_at_least(1), default=20,
+    bp.add_argument("--worlds", type=int_at_least(1), default=20,
                     help="random worlds compared (default 20)")
-    bp.add_argument("--calls", type=_int_at_least(1), default=10000,
+    bp.add_argument("--calls", type=int_at_least(1), default=10000,
                     help="calls for the budget overshoot (default 10000)")
 
     bp = _bench_parser(bsub, "policy", "the actor: onnxruntime vs torch eager, batch-1 latency",
                        cmd_bench_policy)
-    bp.add_argument("--runs", type=_int_at_least(100), default=5000,
+    bp.add_argument("--runs", type=int_at_least(100), default=5000,
                     help="timed inferences per engine and actor (default 5000)")
 
     p = sub.add_parser("export", help="torch checkpoint -> ONNX actor with its spec, verified")
@@ -371,7 +338,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("eval", help="seeded episodes per scenario, lock-stepped, scored as in"
                                      " the paper's table")
-    _add_config_args(p)
+    add_config_args(p)
     p.add_argument("--planner", choices=("dwa", "safemove"), default="dwa",
                    help="dwa: the DWA baseline; safemove: the TD3 actor --model (both through"
                         " the shield)")
@@ -379,12 +346,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scenarios", nargs="+", default=["paper_a", "paper_b", "paper_c", "paper_d"],
                    metavar="NAME", help="shipped scenario names or YAML files (default: the"
                                         " paper's a-d)")
-    p.add_argument("--episodes", type=_int_at_least(1), default=20,
+    p.add_argument("--episodes", type=int_at_least(1), default=20,
                    help="episodes per scenario (default 20)")
     p.add_argument("--seed", type=int, default=0, help="seed of the first episode (default 0)")
-    p.add_argument("--jobs", type=_int_at_least(1), default=1,
+    p.add_argument("--jobs", type=int_at_least(1), default=1,
                    help="worker processes (default 1)")
-    p.add_argument("--fps", type=_finite_float, default=15.0,
+    p.add_argument("--fps", type=finite_float, default=15.0,
                    help="depth frames per second (default 15)")
     p.add_argument("--no-noise", dest="noise", action="store_false",
                    help="render depth without the D435 noise model")
@@ -397,16 +364,16 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("sim", add_help=False,
                        help="the simulated world + base on a pty + depth on a socket (see --help)")
     p.add_argument("sim_args", nargs=argparse.REMAINDER)
-    p.set_defaults(func=cmd_sim)
+    p.set_defaults(func=cmd_sim, passthrough="sim_args")
 
     p = sub.add_parser("record", help="write simulated depth as a pyrealsense2 .db3 recording")
-    _add_config_args(p)
+    add_config_args(p)
     p.add_argument("scenario", help="a shipped scenario name or a scenario YAML file")
     p.add_argument("-o", "--output", type=Path, required=True, help="output file (.db3)")
-    p.add_argument("--frames", type=_int_at_least(1), default=90,
+    p.add_argument("--frames", type=int_at_least(1), default=90,
                    help="frames to record (default 90)")
-    p.add_argument("--fps", type=_finite_float, default=30.0, help="frame rate (default 30)")
-    p.add_argument("--twist", nargs=2, type=_finite_float, metavar=("V", "OMEGA"), default=(0.2, 0.0),
+    p.add_argument("--fps", type=finite_float, default=30.0, help="frame rate (default 30)")
+    p.add_argument("--twist", nargs=2, type=finite_float, metavar=("V", "OMEGA"), default=(0.2, 0.0),
                    help="the robot's body velocity while recording (default 0.2 0)")
     p.add_argument("--seed", type=int, default=None, help="episode seed (default: the scenario's)")
     p.add_argument("--noise", action="store_true", help="D435-like noise and edge dropout")
@@ -415,7 +382,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("base-emulator", add_help=False,
                        help="the emulated Spark base on a pseudo-terminal (see --help)")
     p.add_argument("emulator_args", nargs=argparse.REMAINDER)
-    p.set_defaults(func=cmd_base_emulator)
+    p.set_defaults(func=cmd_base_emulator, passthrough="emulator_args")
 
     from calibration.cli import add_calibrate_parser
 
@@ -423,9 +390,22 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line. `sim` and `base-emulator` hand everything after their name to their
+    own parsers: argparse's REMAINDER alone drops a leading option (`base-emulator --link P`
+    was refused as unrecognized), so those are collected here."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    dest = getattr(args, "passthrough", None)
+    if extra:
+        if dest is None:
+            parser.error(f"unrecognized arguments: {' '.join(extra)}")
+        setattr(args, dest, [*extra, *getattr(args, dest)])
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
     logging.basicConfig(
         level=args.log_level,
         stream=sys.stderr,

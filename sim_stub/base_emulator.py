@@ -26,6 +26,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TextIO
 
+from runtime.cli_args import finite_float
 from sim_stub.base_sim import START_MODES, BasePhysics, Event, SparkBaseSim, noise_bytes
 
 READ_CHUNK = 4096
@@ -384,13 +385,6 @@ def _nonneg_float(text: str) -> float:
     return value
 
 
-def _finite_float(text: str) -> float:
-    value = float(text)
-    if not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"must be finite, got {text}")
-    return value
-
-
 def _u32(text: str) -> int:
     value = int(text, 0)
     if not 0 <= value <= 0xFFFFFFFF:
@@ -420,7 +414,7 @@ def build_arg_parser() -> argparse.ArgumentParser:
                    help="physical left wheel on wire offset 10 instead of 14")
     p.add_argument("--max-accel", type=_positive_float, default=d.max_wheel_accel_m_s2,
                    help="per-wheel acceleration limit (m/s²)")
-    p.add_argument("--gyro-bias", type=_finite_float, default=d.gyro_bias_rad_s,
+    p.add_argument("--gyro-bias", type=finite_float, default=d.gyro_bias_rad_s,
                    help="gyro z bias (rad/s)")
     p.add_argument("--encoder-noise", type=_nonneg_float, default=d.encoder_noise_ticks,
                    help="std-dev of noise on reported encoder counts (ticks)")

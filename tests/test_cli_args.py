@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from runtime.cli import main
+from runtime.cli import main, parse_args
 
 
 @pytest.mark.parametrize(
@@ -27,3 +27,14 @@ def test_bad_numbers_are_refused_by_the_parser(args, needle, capsys):
     assert exc.value.code == 2
     err = capsys.readouterr().err
     assert needle in err and "Traceback" not in err
+
+
+def test_pass_through_commands_keep_their_leading_options(capsys):
+    """`safemove base-emulator --link P` reaches the emulator's own parser (argparse's REMAINDER
+    alone refused a leading option); other commands still refuse unknown options."""
+    args = parse_args(["base-emulator", "--link", "/tmp/spark", "--gyro-bias", "0.01"])
+    assert args.emulator_args == ["--link", "/tmp/spark", "--gyro-bias", "0.01"]
+    assert parse_args(["sim", "paper_a", "--fps", "5"]).sim_args == ["paper_a", "--fps", "5"]
+    with pytest.raises(SystemExit) as exc:
+        parse_args(["config", "show", "--no-such-option"])
+    assert exc.value.code == 2 and "--no-such-option" in capsys.readouterr().err
