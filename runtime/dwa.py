@@ -31,15 +31,21 @@ v² ≤ 2·decel_max·s_free, s_free = |v|·(time of the last step before the fi
 A collision later than that only lowers the clearance term.
 
 Static clearance comes from a distance transform of an occupancy grid (grid_cell_m) built once
-per call; the looked-up distance is reduced by cell·√2, so it is a lower bound on the exact
-distance and at most 2·cell·√2 below it (tested).
+per call over the region the window's rollouts can reach plus the clearance reach; the
+looked-up distance is reduced by cell·√2, so up to clearance_cap + R it is a lower bound on the
+exact distance and at most 2·cell·√2 below it (tested).
+
+Speed: float32 in the hot part; obstacles that cannot matter (farther than the density range,
+and for tracks also than the clearance reach, from every step's rollout box) are dropped
+exactly; the rest are processed in cache-sized groups (see `_Evaluator`).
 
 Budget (the stage is pure, no clock reads of its own): the caller passes an absolute `deadline`
 and the clock `now` it is measured on (the loop: `deadline=time.monotonic() + cfg.budget_s,
-now=time.monotonic`; tests: a fake clock). The coarse grid is always evaluated; then refinement
-rounds (a finer n×n grid around the current best, half the spacing each round) run while
-`now() + estimated round time <= deadline`, up to refine_max_rounds. With `now=None` the rounds
-are bounded only by refine_max_rounds (a pure evaluation-count budget). If no sample is
+now=time.monotonic`; tests: a fake clock). The coarse grid is evaluated in interleaved blocks of
+block_samples (every prefix of blocks spans the whole window); the first block always runs, each
+further block and each refinement round (a finer n×n grid around the current best, half the
+spacing each round, up to refine_max_rounds) only while the slowest such step so far would end
+by the deadline. With `now=None` only the counts bound the work (deterministic). If no sample is
 admissible the result is the strongest braking sample in the window with admissible_best False.
 """
 
