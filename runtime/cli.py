@@ -119,8 +119,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from runtime.app import run_job
     from runtime.dwa_job import DWAJob
     from sim_stub.emulator_process import EmulatorProcess
-    from sim_stub.evaluate import goal_in_odom
+    from sim_stub.scenario import load_scenario
+    from sim_stub.world import goal_in_odom
 
+    load_scenario(args.scenario)  # a bad name or file fails here with its one line, not in the sim
     sim_args = [args.scenario, "--seed", str(args.seed), "--crowd", args.crowd]
     with EmulatorProcess(sim_args, module="sim_stub.sim_server") as sim:
         event = next(e for e in sim.history if e.get("event") == "scenario")

@@ -47,7 +47,7 @@ from sim_stub.base_sim import BasePhysics, SparkBaseSim
 from sim_stub.depth_render import DepthRenderer
 from sim_stub.scenario import load_scenario, with_crowd
 from sim_stub.sim_server import BASE_LINK_HEIGHT_M, scene_from
-from sim_stub.world import World
+from sim_stub.world import World, base_to_world, goal_in_odom
 
 BASE_TICK_S = 0.02  # the Spark base's feedback period (50 Hz)
 PLANNERS = ("dwa", "safemove")
@@ -79,14 +79,6 @@ class EpisodeResult:
     shield_interventions: int
     cycles: int
     job_p99_ms: float
-
-
-def goal_in_odom(start: tuple[float, float, float], goal: np.ndarray) -> tuple[float, float]:
-    """The world goal in the odom frame, which starts at the robot's start pose."""
-    x0, y0, th0 = start
-    dx, dy = float(goal[0]) - x0, float(goal[1]) - y0
-    c, s = math.cos(th0), math.sin(th0)
-    return c * dx + s * dy, -s * dx + c * dy
 
 
 def make_job(settings: EvalSettings, goal_odom: tuple[float, float], loaded: LoadedConfig
@@ -130,17 +122,15 @@ def run_episode(scenario_name: str, seed: int, settings: EvalSettings) -> Episod
     frames = cycles = 0
     path = 0.0
     job_s: list[float] = []
-    c0, s0 = math.cos(start[2]), math.sin(start[2])
     while not world.outcome.done:
         t_next = min(next_tick, next_cycle, next_frame)
         dt = t_next - t
         if dt > 0:
             base.step(dt)
             truth = base.truth()
-            x = start[0] + c0 * truth["x"] - s0 * truth["y"]
-            y = start[1] + s0 * truth["x"] + c0 * truth["y"]
+            x, y, theta = base_to_world(start, truth["x"], truth["y"], truth["theta"])
             path += math.hypot(x - world.robot.x, y - world.robot.y)
-            world.follow_robot(dt, x, y, start[2] + truth["theta"], truth["v"], truth["omega"])
+            world.follow_robot(dt, x, y, theta, truth["v"], truth["omega"])
             t = t_next
             if world.outcome.done:
                 break

@@ -32,7 +32,7 @@ from sim_stub.base_emulator import PtyBaseEmulator
 from sim_stub.base_sim import BasePhysics, SparkBaseSim
 from sim_stub.depth_render import Box, Cylinder, DepthRenderer, Scene, wall
 from sim_stub.scenario import CROWD_MODES, BoxSpec, CylinderSpec, load_scenario, with_crowd
-from sim_stub.world import Snapshot, World
+from sim_stub.world import Snapshot, World, base_to_world
 
 log = logging.getLogger("safemove.sim")
 
@@ -151,10 +151,7 @@ class SimWorldLink:
     def on_tick(self, now: float) -> None:
         """Base tick: put the robot where the base's kinematics took it, step the crowd."""
         truth = self._base.truth()
-        x0, y0, th0 = self._start
-        c, s = math.cos(th0), math.sin(th0)
-        pose = (x0 + c * truth["x"] - s * truth["y"], y0 + s * truth["x"] + c * truth["y"],
-                th0 + truth["theta"])
+        pose = base_to_world(self._start, truth["x"], truth["y"], truth["theta"])
         dt = 0.0 if self._last_t is None else now - self._last_t
         self._last_t = now
         outcome = self.world.follow_robot(dt, *pose, truth["v"], truth["omega"])

@@ -78,6 +78,24 @@ def obstacle_shape(spec: BoxSpec | CylinderSpec | WallSpec) -> Shape:
     return segment_box(spec.start, spec.end, spec.thickness)
 
 
+def base_to_world(start: tuple[float, float, float], x: float, y: float, theta: float
+                  ) -> tuple[float, float, float]:
+    """A pose from the base model's own frame (the origin at power-on) to the world, where the
+    robot started at `start`; the odom frame the runtime keeps starts there too."""
+    x0, y0, th0 = start
+    c, s = math.cos(th0), math.sin(th0)
+    return x0 + c * x - s * y, y0 + s * x + c * y, th0 + theta
+
+
+def goal_in_odom(start: tuple[float, float, float], goal: np.ndarray) -> tuple[float, float]:
+    """A world point in the odom frame, which starts at the robot's start pose (the inverse of
+    `base_to_world` for a point)."""
+    x0, y0, th0 = start
+    dx, dy = float(goal[0]) - x0, float(goal[1]) - y0
+    c, s = math.cos(th0), math.sin(th0)
+    return c * dx + s * dy, -s * dx + c * dy
+
+
 def _approach(current: float, target: float, accel: float, decel: float, dt: float) -> float:
     """Move `current` towards `target`; speeding up limited by accel, slowing down by decel."""
     speeding_up = abs(target) > abs(current) and current * target >= 0.0

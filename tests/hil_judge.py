@@ -9,9 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from sim_stub.emulator_process import EmulatorProcess
-from sim_stub.evaluate import goal_in_odom
 from sim_stub.scenario import load_scenario
-from sim_stub.world import MOVING_SPEED_M_S, ROBOT_RADIUS_M, obstacle_shape
+from sim_stub.world import MOVING_SPEED_M_S, ROBOT_RADIUS_M, goal_in_odom, obstacle_shape
 
 
 def odom_goal(scenario_event: dict) -> tuple[float, float]:

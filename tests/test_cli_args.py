@@ -38,3 +38,9 @@ def test_pass_through_commands_keep_their_leading_options(capsys):
     with pytest.raises(SystemExit) as exc:
         parse_args(["config", "show", "--no-such-option"])
     assert exc.value.code == 2 and "--no-such-option" in capsys.readouterr().err
+
+
+def test_demo_refuses_an_unknown_scenario_before_starting_anything(capsys):
+    assert main(["demo", "--scenario", "no_such_room"]) == 2
+    err = capsys.readouterr().err
+    assert "no_such_room" in err and "Traceback" not in err

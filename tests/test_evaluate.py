@@ -8,7 +8,8 @@ import math
 
 import pytest
 
-from sim_stub.evaluate import EpisodeResult, EvalSettings, goal_in_odom, run_episode, summarise
+from sim_stub.evaluate import EpisodeResult, EvalSettings, run_episode, summarise
+from sim_stub.world import base_to_world, goal_in_odom
 
 SETTINGS = EvalSettings("dwa", None, ("loop.stats_interval_s=0",), None, 10.0, False)
 
@@ -53,6 +54,11 @@ def test_dwa_reaches_the_goal_around_a_box_and_episodes_repeat_exactly(short_roo
 def test_goal_in_odom_frame():
     gx, gy = goal_in_odom((1.0, 2.0, math.pi / 2), [1.0, 5.0])  # 3 m ahead of a robot facing +y
     assert gx == pytest.approx(3.0) and gy == pytest.approx(0.0, abs=1e-12)
+    # the base model's frame and odom both start at the start pose: one is the other's inverse
+    start = (-1.0, 0.5, 2.0)
+    x, y, theta = base_to_world(start, 0.7, -0.2, 0.3)
+    assert goal_in_odom(start, [x, y]) == pytest.approx((0.7, -0.2))
+    assert theta == pytest.approx(2.3)
 
 
 def test_summary_columns():
