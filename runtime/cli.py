@@ -201,8 +201,13 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     def progress(r: Any) -> None:
         if not args.json:
-            print(f"{r.scenario} seed {r.seed}: {r.status} at {r.time_s:.1f} s"
-                  f"{' (at fault)' if r.status == 'collision' and r.at_fault else ''},"
+            fault = ""
+            if r.status == "collision":
+                fault = (" (at fault)" if r.at_fault
+                         else " (moving, not at fault)" if r.moving_at_contact else "")
+                if r.contact_bearing_deg is not None:
+                    fault += f" with {r.collided_with} at {r.contact_bearing_deg:+.0f}°"
+            print(f"{r.scenario} seed {r.seed}: {r.status} at {r.time_s:.1f} s{fault},"
                   f" {r.path_length_m:.2f} m, {r.shield_interventions} shield interventions",
                   file=sys.stderr)
 

@@ -12,7 +12,9 @@ refinement, shield candidate search) are their count limits, so an episode is de
 its seed and does not depend on the machine's load.
 
 The world judges each episode from ground truth: success (within the scenario's goal tolerance),
-collision (at fault when the robot was moving), or timeout. Path length and speed come from the
+collision, or timeout. A collision is at fault when the robot drove into the other body or the
+body was not coming at it; `moving` counts every collision where the robot was moving at all
+(sim_stub/world.py has the rule and why). Path length and speed come from the
 true trajectory.
 """
 
@@ -74,7 +76,9 @@ class EpisodeResult:
     time_s: float
     path_length_m: float
     at_fault: bool
+    moving_at_contact: bool  # strict passive safety: the robot moved at the collision
     collided_with: str | None
+    contact_bearing_deg: float | None  # where the other body was: 0 ahead, + left
     min_separation_m: float
     shield_interventions: int
     cycles: int
@@ -171,7 +175,10 @@ def run_episode(scenario_name: str, seed: int, settings: EvalSettings) -> Episod
     summary = job.summary()
     return EpisodeResult(
         scenario=scenario_name, seed=seed, status=out.status, time_s=out.t,
-        path_length_m=path, at_fault=bool(out.at_fault), collided_with=out.collided_with,
+        path_length_m=path, at_fault=bool(out.at_fault),
+        moving_at_contact=out.contact is not None and out.contact.moving,
+        collided_with=out.collided_with,
+        contact_bearing_deg=None if out.contact is None else out.contact.bearing_deg,
         min_separation_m=float(world.min_separation),
         shield_interventions=int(sum(summary.get("shield_interventions", {}).values())),
         cycles=cycles,
@@ -195,6 +202,7 @@ def summarise(results: list[EpisodeResult]) -> dict[str, Any]:
         "collision_rate": len(coll) / n,
         "timeout_rate": sum(r.status == "timeout" for r in results) / n,
         "at_fault_collisions": sum(r.at_fault for r in coll),
+        "moving_collisions": sum(r.moving_at_contact for r in coll),
         "avg_path_length_m": float(np.mean([r.path_length_m for r in ok])) if ok else None,
         "avg_speed_m_s": (float(np.mean([r.path_length_m / r.time_s for r in ok if r.time_s > 0]))
                           if ok else None),
@@ -245,10 +253,11 @@ def table(result: dict[str, Any]) -> str:
         return "-" if x is None else format(x, fmt)
 
     rows = [(f"{'scenario':<16}{'success':>9}{'collision':>10}{'timeout':>9}{'at fault':>9}"
-             f"{'path m':>8}{'speed m/s':>10}{'shield':>8}")]
+             f"{'moving':>7}{'path m':>8}{'speed m/s':>10}{'shield':>8}")]
     for name, s in result["scenarios"].items():
         rows.append(f"{name:<16}{100 * s['success_rate']:>8.0f}%{100 * s['collision_rate']:>9.0f}%"
                     f"{100 * s['timeout_rate']:>8.0f}%{s['at_fault_collisions']:>9d}"
+                    f"{s['moving_collisions']:>7d}"
                     f"{cell(s['avg_path_length_m'], '.2f'):>8}{cell(s['avg_speed_m_s'], '.3f'):>10}"
                     f"{s['shield_interventions']:>8d}")
     return "\n".join(rows)

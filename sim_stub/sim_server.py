@@ -17,11 +17,9 @@ import socket
 import sys
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
-
-import numpy as np
 
 from drivers.depth_source import D435_848x480
 from drivers.sim_depth_link import encode_frame, frame_digest
@@ -32,7 +30,7 @@ from sim_stub.base_emulator import PtyBaseEmulator
 from sim_stub.base_sim import BasePhysics, SparkBaseSim
 from sim_stub.depth_render import Box, Cylinder, DepthRenderer, Scene, wall
 from sim_stub.scenario import CROWD_MODES, BoxSpec, CylinderSpec, load_scenario, with_crowd
-from sim_stub.world import Snapshot, World, base_to_world
+from sim_stub.world import Contact, Snapshot, World, base_to_world
 
 log = logging.getLogger("safemove.sim")
 
@@ -103,6 +101,14 @@ class DepthServer:
             self.path.unlink()
 
 
+def contact_fields(contact: Contact) -> dict[str, Any]:
+    """A contact as event fields; `collided_with` names the other body, as outcomes always have."""
+    fields = asdict(contact)
+    fields["collided_with"] = fields.pop("with_")
+    fields["world_t"] = fields.pop("t")  # the event's own t is the host clock
+    return fields
+
+
 def scene_from(world: World, snap: Snapshot) -> Scene:
     """Renderer scene for a world snapshot: static obstacles plus people as cylinders."""
     cylinders = [Cylinder(float(p[0]), float(p[1]), float(r), PERSON_HEIGHT_M)
@@ -154,27 +160,17 @@ class SimWorldLink:
         pose = base_to_world(self._start, truth["x"], truth["y"], truth["theta"])
         dt = 0.0 if self._last_t is None else now - self._last_t
         self._last_t = now
+        seen = len(self.world.contacts)
         outcome = self.world.follow_robot(dt, *pose, truth["v"], truth["omega"])
-        if outcome.status != self.last_outcome and self.emit is not None:
-            self.last_outcome = outcome.status
-            self.emit({"event": "outcome", "t": now, "status": outcome.status,
-                       "collided_with": outcome.collided_with, "at_fault": outcome.at_fault,
-                       **self._contact(pose, truth["v"])})
+        if self.emit is not None:
+            for contact in self.world.contacts[seen:]:
+                self.emit({"event": "contact", "t": now, **contact_fields(contact)})
+            if outcome.status != self.last_outcome:
+                self.last_outcome = outcome.status
+                self.emit({"event": "outcome", "t": now, "status": outcome.status,
+                           **(contact_fields(outcome.contact) if outcome.contact else {})})
         with self._lock:
             self._snapshot = (now, self.world.snapshot())
-
-    def _contact(self, pose: tuple[float, float, float], v: float) -> dict[str, Any]:
-        """Where the other body was at contact, seen from the robot: bearing 0 is straight ahead,
-        ±43.5° the edges of the camera's view. Tells a planner failure from a blind-side hit."""
-        who = self.world.outcome.collided_with or ""
-        if not who.startswith("agent "):
-            return {}
-        k = int(who.split()[1])
-        rel = self.world.crowd.positions[k] - pose[:2]
-        bearing = math.atan2(rel[1], rel[0]) - pose[2]
-        return {"robot_speed": v,
-                "bearing_deg": math.degrees(math.atan2(math.sin(bearing), math.cos(bearing))),
-                "agent_speed": float(np.hypot(*self.world.crowd.velocities[k]))}
 
     def _render_loop(self) -> None:
         deadline = time.monotonic()

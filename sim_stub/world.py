@@ -11,6 +11,17 @@ crowd moves, the robot applies the command through its acceleration limits and m
 advances, then the episode is judged: collision, else success, else timeout. Contacts are checked
 at step ends only (no sweeping), which at dt = 0.1 s and these speeds cannot skip a contact of
 0.47 m combined radius by more than a few centimetres of overlap.
+
+Every contact is recorded (`World.contacts`), also after the outcome has latched, with who was at
+fault (`judge_contact`). The robot is at fault when it moved at contact (|v| > 0.01 m/s) and
+either drove into the other body (its own speed toward it > 0.01 m/s with the body within
+±45 degrees of its heading, the front it looks at and is responsible for), or the other body was
+not coming at it (a static obstacle, a person standing or walking away). A person who walks into
+the side or back of a moving robot is not the robot's fault, as in traffic rules; such contacts
+are still counted (`Contact.moving`), because strict passive safety (never moving at any contact)
+is the stronger property, and with one forward camera it cannot be guaranteed: a person walking
+at up to 1 m/s from outside the 87-degree view can reach the robot's side before it stops from any
+speed above zero.
 """
 
 from __future__ import annotations
@@ -26,7 +37,8 @@ from sim_stub.orca import Body, Circle, Crowd, OrcaParams, Shape, rectangle, seg
 from sim_stub.scenario import BoxSpec, CylinderSpec, Scenario, WallSpec
 
 ROBOT_RADIUS_M = 0.17
-MOVING_SPEED_M_S = 0.01  # |v| above this at contact: the robot is at fault
+MOVING_SPEED_M_S = 0.01  # a speed (or speed toward the other body) above this counts as moving
+FRONT_HALF_ANGLE_DEG = 45.0  # the robot drives into what it meets within this of its heading
 _SPAWN_TRIES = 2000
 
 
@@ -42,17 +54,56 @@ class RobotState:
 
 
 @dataclass(frozen=True)
+class Contact:
+    """The start of one contact, judged from ground truth (see the module docs for fault)."""
+
+    t: float
+    with_: str  # "agent 3" or "obstacle 1"
+    robot_speed: float  # |v| of the robot, m/s
+    robot_closing: float  # the robot's own speed toward the other body, m/s (< 0: moving away)
+    other_closing: float  # the other body's speed toward the robot, m/s (0 for obstacles)
+    bearing_deg: float | None  # where the other body was: 0 ahead, + left (None: obstacles)
+    moving: bool  # the robot moved at contact (a strict passive-safety violation)
+    at_fault: bool
+
+
+def judge_contact(t: float, with_: str, robot: RobotState, towards: np.ndarray | None,
+                  other_velocity: np.ndarray) -> Contact:
+    """Fault for a contact beginning now. towards: unit vector from the robot to the other body
+    (None for a static obstacle: only whether the robot moved matters, the obstacle did not)."""
+    heading = np.array([math.cos(robot.theta), math.sin(robot.theta)])
+    moving = abs(robot.v) > MOVING_SPEED_M_S
+    if towards is None:
+        return Contact(t, with_, abs(robot.v), abs(robot.v), 0.0, None, moving, moving)
+    robot_closing = float(robot.v * heading @ towards)
+    other_closing = float(-np.asarray(other_velocity, dtype=float) @ towards)
+    bearing = math.degrees(math.atan2(heading[0] * towards[1] - heading[1] * towards[0],
+                                      heading @ towards))
+    drove_into = robot_closing > MOVING_SPEED_M_S and abs(bearing) <= FRONT_HALF_ANGLE_DEG
+    came_at_robot = other_closing > MOVING_SPEED_M_S
+    return Contact(t, with_, abs(robot.v), robot_closing, other_closing, bearing, moving,
+                   moving and (drove_into or not came_at_robot))
+
+
+@dataclass(frozen=True)
 class Outcome:
     """Judgement of the episode so far. status: running | success | collision | timeout."""
 
     status: str
     t: float
-    collided_with: str | None = None  # "agent 3" or "obstacle 1"
-    at_fault: bool | None = None  # collisions only: the robot was moving at contact
+    contact: Contact | None = None  # collisions only: the first contact
 
     @property
     def done(self) -> bool:
         return self.status != "running"
+
+    @property
+    def collided_with(self) -> str | None:
+        return None if self.contact is None else self.contact.with_
+
+    @property
+    def at_fault(self) -> bool | None:
+        return None if self.contact is None else self.contact.at_fault
 
 
 @dataclass(frozen=True)
@@ -122,6 +173,8 @@ class World:
         self.shapes: list[Shape] = [obstacle_shape(o) for o in scenario.obstacles]
         self.t = 0.0
         self.min_separation = math.inf  # smallest robot-agent gap seen (m)
+        self.contacts: list[Contact] = []  # every contact's start, also after the outcome
+        self._touching: set[str] = set()
         rng = np.random.default_rng(self.seed)
         self._goal_rng = np.random.default_rng([self.seed, 1])
 
@@ -277,18 +330,36 @@ class World:
         r.theta = math.atan2(math.sin(r.theta + dth), math.cos(r.theta + dth))
 
     def judge(self) -> Outcome:
-        """Collision (with fault), success, timeout or running, from the current ground truth."""
+        """Collision (with fault), success, timeout or running, from the current ground truth.
+        Records the contacts that begin now in `contacts`."""
         p = np.array([self.robot.x, self.robot.y])
-        at_fault = abs(self.robot.v) > MOVING_SPEED_M_S
+        touching: list[str] = []
+        new: list[Contact] = []
         if len(self.crowd):
-            gaps = np.hypot(*(self.crowd.positions - p).T) - self.crowd.radii - self.robot_radius
-            k = int(np.argmin(gaps))
-            self.min_separation = min(self.min_separation, float(gaps[k]))
-            if gaps[k] < 0.0:
-                return Outcome("collision", self.t, f"agent {k}", at_fault)
+            rel = self.crowd.positions - p
+            dist = np.hypot(*rel.T)
+            gaps = dist - self.crowd.radii - self.robot_radius
+            self.min_separation = min(self.min_separation, float(gaps.min()))
+            for k in np.argsort(gaps)[: int(np.count_nonzero(gaps < 0.0))]:
+                who = f"agent {k}"
+                touching.append(who)
+                if who not in self._touching:
+                    towards = rel[k] / max(float(dist[k]), 1e-9)
+                    new.append(judge_contact(self.t, who, self.robot, towards,
+                                             self.crowd.velocities[k]))
         for o, shape in enumerate(self.shapes):
             if shape.distance(p[None])[0] < self.robot_radius:
-                return Outcome("collision", self.t, f"obstacle {o}", at_fault)
+                who = f"obstacle {o}"
+                touching.append(who)
+                if who not in self._touching:
+                    new.append(judge_contact(self.t, who, self.robot, None, np.zeros(2)))
+        self._touching = set(touching)
+        self.contacts.extend(new)
+        if touching:
+            first = next((c for c in new if c.with_ == touching[0]), None)
+            if first is None:  # touching since before: judged when it began
+                first = next(c for c in reversed(self.contacts) if c.with_ == touching[0])
+            return Outcome("collision", self.t, first)
         if np.hypot(*(self.goal - p)) <= self.scenario.goal_tolerance_m:
             return Outcome("success", self.t)
         if self.t >= self.scenario.time_limit_s - 1e-9:

@@ -62,17 +62,20 @@ def test_goal_in_odom_frame():
 
 
 def test_summary_columns():
-    def ep(status, t=10.0, path=2.0, fault=False, shield=1):
-        return EpisodeResult("x", 0, status, t, path, fault, "agent 1" if status == "collision"
-                             else None, 0.3, shield, 200, 5.0)
+    def ep(status, t=10.0, path=2.0, fault=False, moving=False, shield=1):
+        hit = status == "collision"
+        return EpisodeResult("x", 0, status, t, path, fault, moving, "agent 1" if hit else None,
+                             90.0 if hit else None, 0.3, shield, 200, 5.0)
 
-    s = summarise([ep("success", 10.0, 3.0), ep("success", 20.0, 4.0), ep("collision", fault=True),
+    s = summarise([ep("success", 10.0, 3.0), ep("success", 20.0, 4.0),
+                   ep("collision", fault=True, moving=True), ep("collision", moving=True),
                    ep("collision"), ep("timeout")])
-    assert (s["success_rate"], s["collision_rate"], s["timeout_rate"]) == (0.4, 0.4, 0.2)
-    assert s["at_fault_collisions"] == 1
+    assert s["collision_rate"] == pytest.approx(0.5)
+    assert (s["success_rate"], s["timeout_rate"]) == pytest.approx((1 / 3, 1 / 6))
+    assert (s["at_fault_collisions"], s["moving_collisions"]) == (1, 2)
     assert s["avg_path_length_m"] == pytest.approx(3.5)  # over successes
     assert s["avg_speed_m_s"] == pytest.approx((0.3 + 0.2) / 2)
-    assert s["shield_interventions"] == 5
+    assert s["shield_interventions"] == 6
     assert summarise([ep("timeout")])["avg_speed_m_s"] is None
 
 

@@ -19,7 +19,7 @@ import yaml
 from runtime.errors import ConfigError
 from sim_stub.orca import Crowd, solve_velocity
 from sim_stub.scenario import available_scenarios, load_scenario, parse_scenario
-from sim_stub.world import World
+from sim_stub.world import Contact, RobotState, World, judge_contact
 
 DT = 0.1
 OVERLAP_SLACK_M = 0.005
@@ -334,18 +334,56 @@ def test_robot_respects_acceleration_limits() -> None:
     assert world.robot.omega == pytest.approx(2.0 * DT)  # alpha_max 2 rad/s^2
 
 
-def test_sim_reports_where_a_colliding_agent_came_from():
-    from types import SimpleNamespace
+def _contact(robot_v: float, bearing_deg: float, person_velocity: tuple[float, float]) -> Contact:
+    """A contact with a robot at the origin facing +x and a person in direction `bearing_deg`."""
+    b = math.radians(bearing_deg)
+    return judge_contact(1.0, "agent 0", RobotState(0.0, 0.0, 0.0, robot_v),
+                         np.array([math.cos(b), math.sin(b)]), np.array(person_velocity))
 
-    from sim_stub.sim_server import SimWorldLink
-    from sim_stub.world import Outcome
 
-    w = World(load_scenario("paper_a"), seed=1)
-    w.crowd.positions[0] = (1.0, 1.0)  # 45° to the left of a robot at the origin facing +x
-    w.crowd.velocities[0] = (0.0, -0.6)
-    w.outcome = Outcome("collision", 1.0, "agent 0", True)
-    contact = SimWorldLink._contact(SimpleNamespace(world=w), (0.0, 0.0, 0.0), 0.2)
-    assert contact["bearing_deg"] == pytest.approx(45.0)
-    assert contact["agent_speed"] == pytest.approx(0.6) and contact["robot_speed"] == 0.2
-    w.outcome = Outcome("collision", 1.0, "obstacle 2", True)
-    assert SimWorldLink._contact(SimpleNamespace(world=w), (0.0, 0.0, 0.0), 0.2) == {}
+@pytest.mark.parametrize(("robot_v", "bearing", "person", "moving", "at_fault"), [
+    (0.2, 0.0, (0.0, 0.0), True, True),  # drove into a person standing ahead
+    (0.2, 10.0, (-0.5, 0.0), True, True),  # head-on: both closing, the robot looked that way
+    (0.2, 60.0, (0.0, 0.0), True, True),  # swept its side into a person standing there
+    (0.2, 60.0, (0.3, 0.2), True, True),  # the person was walking away: the robot caught them
+    (0.12, 77.0, (0.0, -0.8), True, False),  # walked into the side of a creeping robot
+    (0.12, 180.0, (0.8, 0.0), True, False),  # walked into its back
+    (-0.1, 180.0, (0.0, 0.0), True, True),  # reversed into a person standing behind
+    (0.0, 0.0, (-0.8, 0.0), False, False),  # walked into a robot standing still
+    (0.005, 0.0, (-0.8, 0.0), False, False),  # ... or creeping below the 0.01 m/s threshold
+])
+def test_contact_fault(robot_v, bearing, person, moving, at_fault) -> None:
+    c = _contact(robot_v, bearing, person)
+    assert (c.moving, c.at_fault) == (moving, at_fault)
+    assert abs(c.bearing_deg) == pytest.approx(bearing)
+
+
+def test_contact_records_its_geometry() -> None:
+    c = _contact(0.2, 45.0, (0.0, -0.6))
+    assert c.robot_speed == pytest.approx(0.2)
+    assert c.robot_closing == pytest.approx(0.2 * math.cos(math.radians(45)))
+    assert c.other_closing == pytest.approx(0.6 * math.sin(math.radians(45)))
+    assert c.at_fault  # within ±45° and closing: the robot drove into them
+
+
+def test_static_obstacle_contact_is_at_fault_exactly_when_moving() -> None:
+    for v, fault in ((0.2, True), (0.0, False)):
+        c = judge_contact(0.0, "obstacle 0", RobotState(0.0, 0.0, 0.0, v), None, np.zeros(2))
+        assert (c.moving, c.at_fault, c.bearing_deg) == (fault, fault, None)
+
+
+def test_world_records_each_contact_once_and_after_the_outcome_latched() -> None:
+    world = _crossing_world(reactive=False)
+    for _ in range(100):  # 8 s: the oblivious agent walks through the parked robot
+        world.follow_robot(DT, 0.0, 0.0, 0.0, 0.0, 0.0)
+    assert world.outcome.status == "collision" and world.outcome.contact == world.contacts[0]
+    assert len(world.contacts) == 1  # one contact, not one per step while touching
+    c = world.contacts[0]
+    assert (c.with_, c.moving, c.at_fault) == ("agent 0", False, False)
+    assert abs(c.bearing_deg) > 135.0  # it came from behind (x = -3)
+    assert c.other_closing == pytest.approx(0.8, abs=0.05)
+    world.crowd.set_agent(0, (3.0, 0.0), (-3.0, 0.0))  # and back again, into the robot's face
+    for _ in range(100):
+        world.follow_robot(DT, 0.0, 0.0, 0.0, 0.0, 0.0)
+    assert len(world.contacts) == 2 and abs(world.contacts[1].bearing_deg) < 45.0
+    assert world.outcome.contact == world.contacts[0]  # the outcome stays latched
