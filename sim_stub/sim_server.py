@@ -4,7 +4,9 @@ One process holds the world (crowd, obstacles, judging), the Spark base emulator
 (whose kinematics move the robot), and a renderer that serves synthetic D435 depth on a Unix
 socket. The base loop (50 Hz) steps the world in its tick; a render thread renders the latest
 world snapshot at the configured rate and sends each frame to every connected client, so a slow
-render never delays base feedback. Events are JSON lines on stdout as for the base emulator.
+render never delays base feedback. Events are JSON lines on stdout as for the base emulator;
+the world adds `contact` (each contact as it begins, with who was at fault: see world.py) and
+`outcome` (the latched verdict: success, collision with its contact, or timeout).
 """
 
 from __future__ import annotations
