@@ -1,27 +1,22 @@
 """`safemove eval`: seeded episodes per scenario, lock-stepped in one process, scored as in the
 paper's table.
 
-Each episode runs the runtime's own pipeline code on simulated time: the Spark base model
-(`SparkBaseSim`) moves the robot and streams real feedback frames, which go through the real
-codec (`FrameParser`, `FeedbackConverter`) into the odometry EKF; the renderer's D435 frames go
-through the world model (`WorldModel`: perception → memory → tracker); the planner job (the DWA
-baseline or the SafeMove policy, each through the shield) picks the command; the limits stage
-rate-limits it; and it reaches the base as a wheel-speed frame, as `SparkBaseLink` would send it.
-Only the serial and socket I/O and the wall clock are left out: the planner budgets (DWA
+Each episode runs the runtime's own pipeline code on simulated time (`LockstepEpisode`: base
+model → real codec → EKF; rendered D435 → world model; the decision → limits → base), with the
+planner job (the DWA baseline or the SafeMove policy, each through the shield) deciding each
+cycle. Only the serial and socket I/O and the wall clock are left out: the planner budgets (DWA
 refinement, shield candidate search) are their count limits, so an episode is deterministic from
 its seed and does not depend on the machine's load.
 
 The world judges each episode from ground truth: success (within the scenario's goal tolerance),
 collision, or timeout. A collision is at fault when the robot drove into the other body or the
 body was not coming at it; `moving` counts every collision where the robot was moving at all
-(sim_stub/world.py has the rule and why). Path length and speed come from the
-true trajectory.
+(sim_stub/world.py has the rule and why). Path length and speed come from the true trajectory.
 """
 
 from __future__ import annotations
 
 import logging
-import math
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
@@ -31,27 +26,11 @@ from typing import Any
 
 import numpy as np
 
-from drivers.depth_source import D435_848x480
-from drivers.spark_feedback import FeedbackConverter
-from drivers.spark_protocol import (
-    BASE_TO_HOST,
-    FrameParser,
-    decode_feedback,
-    twist_to_wheel_ticks,
-    wheel_speed_frame,
-)
 from runtime.config import LoadedConfig, load_config
-from runtime.limits import apply_limits
-from runtime.odometry_ekf import OdometryEKF
-from runtime.types import STOP, DepthFrame, Odometry
-from runtime.world_model import WorldModel, WorldState
-from sim_stub.base_sim import BasePhysics, SparkBaseSim
-from sim_stub.depth_render import DepthRenderer
-from sim_stub.scenario import load_scenario, with_crowd
-from sim_stub.sim_server import BASE_LINK_HEIGHT_M, scene_from
-from sim_stub.world import World, base_to_world, goal_in_odom
+from runtime.types import STOP
+from sim_stub.lockstep import LockstepEpisode
+from sim_stub.scenario import load_scenario
 
-BASE_TICK_S = 0.02  # the Spark base's feedback period (50 Hz)
 PLANNERS = ("dwa", "safemove")
 
 
@@ -102,86 +81,28 @@ def make_job(settings: EvalSettings, goal_odom: tuple[float, float], loaded: Loa
 def run_episode(scenario_name: str, seed: int, settings: EvalSettings) -> EpisodeResult:
     """One seeded episode to its judged end (see the module docs)."""
     loaded = load_config(settings.config_path, list(settings.overrides))
-    cfg, cal = loaded.config, loaded.calibration
-    world = World(with_crowd(load_scenario(scenario_name), settings.crowd), seed=seed,
-                  limits=cfg.limits)
-    start = (world.robot.x, world.robot.y, world.robot.theta)
-    base = SparkBaseSim(BasePhysics(seed=seed), "stream", watchdog_s=0.0, t0=0.0)
-    renderer = DepthRenderer(D435_848x480, cal.camera, base_z=BASE_LINK_HEIGHT_M, seed=seed)
-    parser = FrameParser(BASE_TO_HOST)
-    converter = FeedbackConverter(cal.odometry, cfg.base.glitch_ticks)
-    ekf = OdometryEKF(cal.odometry.axle_length_m, cfg.odometry)
-    model = WorldModel(cfg, cal.camera)
-    job = make_job(settings, goal_in_odom(start, world.goal), loaded)
-    max_wheel_mm_s = round(cfg.base.max_wheel_speed_m_s * 1000)
-
-    period = 1.0 / cfg.loop.control_hz
-    frame_period = 1.0 / settings.fps
-    t, next_tick, next_cycle, next_frame = 0.0, BASE_TICK_S, period, 0.0
-    odom, command = Odometry(), STOP
-    increments: list = []
-    frame: DepthFrame | None = None
-    seen: DepthFrame | None = None
-    state: WorldState | None = None
-    frames = cycles = 0
-    path = 0.0
+    episode = LockstepEpisode(scenario_name, seed, loaded, settings.fps, settings.noise,
+                              settings.crowd)
+    job = make_job(settings, episode.goal_odom, loaded)
     job_s: list[float] = []
-    while not world.outcome.done:
-        t_next = min(next_tick, next_cycle, next_frame)
-        dt = t_next - t
-        if dt > 0:
-            base.step(dt)
-            truth = base.truth()
-            x, y, theta = base_to_world(start, truth["x"], truth["y"], truth["theta"])
-            path += math.hypot(x - world.robot.x, y - world.robot.y)
-            world.follow_robot(dt, x, y, theta, truth["v"], truth["omega"])
-            t = t_next
-            if world.outcome.done:
-                break
-        if t >= next_tick - 1e-9:
-            next_tick += BASE_TICK_S
-            for f in parser.feed(base.feedback_frame()):
-                inc = converter.convert(decode_feedback(f.payload), t)
-                if inc is not None:
-                    increments.append(inc)
-        if t >= next_frame - 1e-9:
-            next_frame += frame_period
-            if not job.finished:  # a finished job stands still: nobody needs to look
-                snap = world.snapshot()
-                depth = renderer.render(tuple(snap.robot_pose), scene_from(world, snap),
-                                        noise=settings.noise)
-                frame = DepthFrame(depth, t, frames, renderer.intrinsics)
-                frames += 1
-        if t >= next_cycle - 1e-9:
-            next_cycle += period
-            cycles += 1
-            for inc in increments:
-                odom = ekf.step(inc)
-            increments.clear()
-            if frame is not None and frame is not seen:
-                seen = frame
-                state = model.update(frame, odom)
-            w0 = time.perf_counter()
-            target = STOP if job.finished else job.step(t, odom, state)
-            job_s.append(time.perf_counter() - w0)
-            if not target.is_finite():
-                target = STOP
-            command = apply_limits(target, command, period, cfg.limits)
-            left, right = twist_to_wheel_ticks(command.v, command.omega,
-                                               cal.odometry.axle_length_m,
-                                               cal.odometry.m_per_tick, max_wheel_mm_s)
-            base.receive(wheel_speed_frame(left, right), t)
+    while (now := episode.cycle()) is not None:
+        w0 = time.perf_counter()
+        target = STOP if job.finished else job.step(*now)
+        job_s.append(time.perf_counter() - w0)
+        episode.command(target)
+        episode.looking = not job.finished
+    world = episode.world
     out = world.outcome
     summary = job.summary()
     return EpisodeResult(
         scenario=scenario_name, seed=seed, status=out.status, time_s=out.t,
-        path_length_m=path, at_fault=bool(out.at_fault),
+        path_length_m=episode.path_length_m, at_fault=bool(out.at_fault),
         moving_at_contact=out.contact is not None and out.contact.moving,
         collided_with=out.collided_with,
         contact_bearing_deg=None if out.contact is None else out.contact.bearing_deg,
         min_separation_m=float(world.min_separation),
         shield_interventions=int(sum(summary.get("shield_interventions", {}).values())),
-        cycles=cycles,
+        cycles=episode.cycles,
         job_p99_ms=float(np.percentile(1e3 * np.array(job_s), 99)) if job_s else 0.0)
 
 
