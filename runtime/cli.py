@@ -181,6 +181,12 @@ def cmd_bench_policy(args: argparse.Namespace) -> int:
     return _print_bench(bench_policy(args.runs), args.json)
 
 
+def cmd_train(args: argparse.Namespace) -> int:
+    from train.cli import run_train
+
+    return _print_bench(run_train(args), False)
+
+
 def cmd_export(args: argparse.Namespace) -> int:
     from export.cli import run_export
     from sim_stub.recorded_observations import simulated_observations
@@ -342,6 +348,13 @@ def build_parser() -> argparse.ArgumentParser:
     add_export_arguments(p)
     p.add_argument("--json", action="store_true", help="print only the JSON line")
     p.set_defaults(func=cmd_export)
+
+    p = sub.add_parser("train", help="TD3 (stable-baselines3) on the lock-stepped simulated"
+                                      " robot, shield in the loop; exports the actor")
+    from train.cli import add_arguments as add_train_arguments
+
+    add_train_arguments(p)
+    p.set_defaults(func=cmd_train)
 
     p = sub.add_parser("eval", help="seeded episodes per scenario, lock-stepped, scored as in"
                                      " the paper's table")

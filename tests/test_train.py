@@ -1,0 +1,120 @@
+"""Training: the gymnasium environment over the lock-stepped robot, and `safemove train` end to
+end (train → td3.zip → exported actor.onnx → `safemove eval` runs it)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+pytest.importorskip("gymnasium")
+pytest.importorskip("stable_baselines3")
+
+from gymnasium.utils.env_checker import check_env
+
+from runtime.config import load_config
+from runtime.obs_spec import PRESETS
+from train.env import RewardConfig, SafeMoveEnv
+
+SPEC = PRESETS["safemove"]
+
+
+def _room(tmp_path, name: str, goal_x: float, crowd: str = "{count: 0}") -> str:
+    """An empty 6 m room; the robot at the origin facing +x, the goal goal_x ahead."""
+    path = tmp_path / f"{name}.yaml"
+    path.write_text(
+        f"name: {name}\n"
+        "description: an empty room\n"
+        "seed: 1\n"
+        "time_limit_s: 30.0\n"
+        "area: {x_min: -3.0, x_max: 3.0, y_min: -3.0, y_max: 3.0}\n"
+        "robot:\n"
+        "  area: {x_min: -0.01, x_max: 0.01, y_min: -0.01, y_max: 0.01}\n"
+        "  heading_deg: 0.0\n"
+        f"goals: [[{goal_x}, 0.0]]\n"
+        f"crowd: {crowd}\n"
+        "obstacles: []\n")
+    return str(path)
+
+
+def _env(scenario: str, **kw) -> SafeMoveEnv:
+    return SafeMoveEnv([scenario], SPEC, load_config(None, []), noise=False, **kw)
+
+
+def test_env_passes_the_gymnasium_checker_and_repeats_from_its_seed(tmp_path):
+    room = _room(tmp_path, "room", 2.0)
+    check_env(_env(room), skip_render_check=True)
+    a, b = _env(room), _env(room)
+    oa, ia = a.reset(seed=7)
+    ob, ib = b.reset(seed=7)
+    assert ia == ib and np.array_equal(oa, ob)
+    for action in ([0.5, 0.2], [1.0, -0.3], [0.0, 0.0]):
+        ra = a.step(np.array(action, dtype=np.float32))
+        rb = b.step(np.array(action, dtype=np.float32))
+        assert np.array_equal(ra[0], rb[0]) and ra[1:4] == rb[1:4]
+    assert a.observation_space.contains(ra[0])
+
+
+def test_driving_to_the_goal_earns_progress_and_the_success_bonus(tmp_path):
+    env = _env(_room(tmp_path, "room", 1.0))
+    cfg = RewardConfig()
+    env.reset(seed=0)
+    start = float(np.hypot(*env.world.goal))
+    total, rewards, info, done = 0.0, [], {}, False
+    while not done:
+        _, r, terminated, truncated, info = env.step(np.array([1.0, 0.0], dtype=np.float32))
+        rewards.append(r)
+        total += r
+        done = terminated or truncated
+    assert terminated and info["outcome"] == "success"
+    assert rewards[-1] > cfg.success  # the bonus, on top of the last cycle's progress
+    progress = start - float(np.hypot(*(env.world.goal - [env.world.robot.x, 0.0])))
+    expected = (cfg.progress_per_m * progress - cfg.time_per_s * info["time_s"] + cfg.success)
+    assert total == pytest.approx(expected, abs=0.05)  # the shield never had to step in here
+    assert sum(r > 0 for r in rewards[5:]) == len(rewards) - 5  # once moving: every cycle gains
+
+
+def test_a_person_walking_into_the_parked_robot_ends_it_with_the_collision_penalty(tmp_path):
+    crowd = "{count: 1, reactive: false, speed_range: [0.8, 0.8], radius: 0.3}"
+    env = _env(_room(tmp_path, "crossing", 2.5, crowd))
+    env.reset(seed=0)
+    world = env.world
+    world.crowd.set_agent(0, (0.0, 2.5), (0.0, -3.0))  # walks down across the robot
+    world.crowd.goal_sampler = None
+    stand = np.array([-1.0, 0.0], dtype=np.float32)  # v_min = 0: the robot stays parked
+    for _ in range(200):
+        _, r, terminated, truncated, info = env.step(stand)
+        if terminated or truncated:
+            break
+    assert terminated and info["outcome"] == "collision" and not info["at_fault"]
+    assert r < -RewardConfig().collision + 0.1
+
+
+def test_train_writes_a_model_and_an_actor_that_eval_runs(tmp_path, safemove):
+    room = _room(tmp_path, "room", 1.5)
+    out = tmp_path / "run"
+    run = safemove(["train", "-o", str(out), "--steps", "120", "--learning-starts", "60",
+                    "--batch-size", "32", "--scenarios", room, "--checkpoint-every", "100",
+                    "--no-noise", "--net", "64", "64"])
+    assert run.wait(timeout=300) == 0, run.stderr[-3000:]
+    summary = json.loads(run.stdout.strip().splitlines()[-1])
+    assert summary["steps"] == 120 and summary["episodes"] >= 0
+    assert max(summary["export_parity_max_abs"].values()) < 1e-5
+    for name in ("td3.zip", "actor.onnx", "spec.json", "monitor.csv",
+                 "checkpoints/td3_100_steps.zip"):
+        assert (out / name).is_file(), name
+    evaluated = safemove(["eval", "--planner", "safemove", "--model", str(out / "actor.onnx"),
+                          "--scenarios", room, "--episodes", "1", "--no-noise", "--json"])
+    assert evaluated.wait(timeout=300) == 0, evaluated.stderr[-3000:]
+    result = json.loads(evaluated.stdout.strip().splitlines()[-1])
+    assert result["scenarios"][room]["episodes"] == 1
+    again = safemove(["train", "-o", str(out), "--steps", "10", "--scenarios", room])
+    assert again.wait(timeout=120) == 2
+    assert "td3.zip: exists" in again.stderr and "Traceback" not in again.stderr
+
+
+def test_train_refuses_an_unknown_scenario(tmp_path, safemove):
+    run = safemove(["train", "-o", str(tmp_path / "run"), "--scenarios", "no_such_room"])
+    assert run.wait(timeout=120) == 2
+    assert "no_such_room" in run.stderr and "Traceback" not in run.stderr

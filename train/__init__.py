@@ -1,0 +1,1 @@
+"""Training: the gymnasium environment over the lock-stepped robot and `safemove train`."""
