@@ -13,7 +13,11 @@ midpoint sub-steps per check step `check_dt`; the footprint is a disc of radius
 `robot_radius + margin` (R) around base_link.
 
 Obstacle model (what must stay clear, exactly):
-  (a) static points: every point p of `points` must stay at distance >= R from the centre.
+  (a) static points: every point p of `points` must stay at distance >= R from the centre;
+      while the robot closes on p (its speed toward p > 0.01 m/s) with p within
+      ±approach_half_angle of the direction of travel, at distance >= R + untracked_approach·t
+      (p may be a person the tracker has not confirmed, walking in: the robot must stand still
+      before they could reach it, or it would have driven into them).
   (b) tracks: track i's centre moves piecewise linearly through `track_positions[i, k]` at times
       k·track_dt (beyond the last given time it continues with its last segment's velocity), its
       std likewise; the centre must stay at distance >= R + radius_i + k_sigma·std_i(t).
@@ -99,6 +103,14 @@ class ShieldConfig:
     candidate_budget_s: float = setting(
         0.002, "time the search for a certified replacement may take before the shield brakes"
         " instead", "s", min=0.0, max=0.05)
+    untracked_approach_m_s: float = setting(
+        0.5, "a remembered point may be a person not (yet) tracked, e.g. one entering from the"
+        " side, cut by the view's edge: while the robot closes on a point within"
+        " ±approach_half_angle_deg of its heading, it keeps this speed × time as extra distance,"
+        " so it stands before such a person can reach it (0 = off)", "m/s", min=0.0, max=3.0)
+    approach_half_angle_deg: float = setting(
+        45.0, "the front, around the direction of travel, where untracked_approach_m_s applies",
+        "deg", min=0.0, max=90.0)
 
     @property
     def footprint(self) -> float:
@@ -247,6 +259,20 @@ def _bin_geometry(world: ShieldWorld) -> tuple[float, float]:
 
 
 _OUTSIDE, _UNKNOWN, _SHADOW, _BLIND = 1, 2, 3, 4
+_CLOSING_M_S = 0.01  # speed toward a point above which the robot counts as closing on it
+
+
+def _approach_margin(cfg: ShieldConfig, c: np.ndarray, heading: np.ndarray, vs: np.ndarray,
+                     ts: np.ndarray, q: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """(N, Q) extra distance for untracked points (module docs (a)): untracked_approach·t where
+    the robot closes on the point within the front half-angle, else 0."""
+    rel_x = q[None, :, 0] - c[:, None, 0]
+    rel_y = q[None, :, 1] - c[:, None, 1]
+    along = (rel_x * np.cos(heading)[:, None] + rel_y * np.sin(heading)[:, None]) / np.maximum(
+        d, 1e-9)  # cos of the point's bearing from the heading
+    closing = vs[:, None] * along > _CLOSING_M_S
+    front = np.abs(along) >= math.cos(math.radians(cfg.approach_half_angle_deg))
+    return np.where(closing & front, cfg.untracked_approach_m_s * ts[:, None], 0.0)
 
 
 def _unseen(wa: _WorldArrays, cfg: ShieldConfig, pts: np.ndarray, slack: float
@@ -307,22 +333,31 @@ def certify(cmd: Twist, state: Twist, world: ShieldWorld, cfg: ShieldConfig,
     # (a) static points: bounding-box prefilter, then all distances
     pts = wa.points
     if len(pts):
-        lo_b = c.min(axis=0) - R - slack_c
-        hi_b = c.max(axis=0) + R + slack_c
+        reach = R + slack_c + cfg.untracked_approach_m_s * float(ts[-1])
+        lo_b = c.min(axis=0) - reach
+        hi_b = c.max(axis=0) + reach
         near = np.all((pts >= lo_b) & (pts <= hi_b), axis=1)
         q = pts[near]
         if len(q):
             d = np.sqrt(((c[:, None, :] - q[None, :, :]) ** 2).sum(axis=2))  # (N, Q)
             # a point already inside the footprint may not come any closer (see module docs)
-            need = np.where(d[0] >= R, R + slack_c, d[0] - slack_c)
-            marg = d - need
+            outside = d[0] >= R
+            need = np.where(outside, R + slack_c, d[0] - slack_c)[None, :]
+            approach = np.zeros_like(d)
+            if cfg.untracked_approach_m_s > 0.0:
+                approach = np.where(outside[None, :], _approach_margin(
+                    cfg, c, pose[:, 2], vs, ts, q, d), 0.0)
+            marg = d - need - approach
             i, j = np.unravel_index(int(np.argmin(marg)), marg.shape)
             margin = float(marg[i, j])
             best = min(best, (margin, float(ts[i])))
             if margin < 0:
-                tbad = float(ts[np.argmax((marg < 0).any(axis=1))])
-                p = q[j]
-                what = (f"come within {R:.2f} m of" if d[0, j] >= R
+                ibad = int(np.argmax((marg < 0).any(axis=1)))
+                tbad = float(ts[ibad])
+                jbad = int(np.argmax(marg[ibad] < 0))
+                p = q[jbad]
+                what = ("drive at (it may be a person walking in)" if approach[ibad, jbad] > 0
+                        else f"come within {R:.2f} m of" if d[0, jbad] >= R
                         else "come closer to")
                 failures.append((tbad, (f"cmd would {what} the obstacle point "
                                        f"({p[0]:.2f}, {p[1]:.2f}) at t={tbad:.2f} s")))

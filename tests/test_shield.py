@@ -15,7 +15,9 @@ from runtime.shield import ShieldConfig, ShieldWorld, certify, shield
 from runtime.types import Twist
 
 LIM = LimitsConfig()
-CFG = ShieldConfig()
+# the geometry tests check the obstacle model without the untracked-approach margin; its own
+# tests below turn it on
+CFG = ShieldConfig(untracked_approach_m_s=0.0)
 NB = 90
 EDGES = np.deg2rad(np.linspace(-43.5, 43.5, NB + 1))
 ANG = 0.5 * (EDGES[:-1] + EDGES[1:])
@@ -240,7 +242,7 @@ def test_unknown_bin_ahead_rejects_forward_motion():
 
 def test_reversing_into_unseen_space_needs_the_config():
     assert not certify(Twist(-0.1, 0.0), Twist(-0.1, 0.0), world(), CFG, LIM).ok
-    cfg = ShieldConfig(reverse_into_unseen=True)
+    cfg = ShieldConfig(reverse_into_unseen=True, untracked_approach_m_s=0.0)
     assert certify(Twist(-0.1, 0.0), Twist(-0.1, 0.0), world(), cfg, LIM).ok
 
 
@@ -248,7 +250,7 @@ def test_strict_blind_zone_forbids_forward_motion():
     w = ShieldWorld(bin_angles=ANG, unknown=np.zeros(NB, bool), scan=np.full(NB, np.inf),
                     blind_range=np.full(NB, 0.3))
     assert certify(Twist(0.2, 0.0), Twist(0.2, 0.0), w, CFG, LIM).ok
-    c = certify(Twist(0.2, 0.0), Twist(0.2, 0.0), w, ShieldConfig(blind_zone="occupied"), LIM)
+    c = certify(Twist(0.2, 0.0), Twist(0.2, 0.0), w, ShieldConfig(blind_zone="occupied", untracked_approach_m_s=0.0), LIM)
     assert not c.ok and "blind zone" in c.reason
 
 
@@ -256,3 +258,23 @@ def test_nan_command_brakes():
     d = shield(Twist(math.nan, 0.0), Twist(0.3, 0.5), np.array([[0.1, 0.0]]), None, world(), LIM,
                CFG)
     assert d.intervened and d.command == Twist(0.25, 0.4)
+
+
+def test_untracked_points_ahead_are_kept_at_a_distance_a_walking_person_could_close():
+    """With the margin on (the default), a point ahead may be a person walking in at 0.5 m/s:
+    the robot must stand still before they could reach it. Turning in place and moving away
+    stay free; a point to the side (outside ±45°) or behind gets no margin."""
+    cfg = ShieldConfig()
+    assert cfg.untracked_approach_m_s == 0.5
+    pts, scan = wall_at(0.30)
+    w = world(pts, scan=scan)
+    slow = Twist(0.1, 0.0)  # stops 0.015 m on after 0.2 s, 0.285 m from the wall; the margin
+    # asks for 0.22 + 0.5 * 0.2 = 0.32 m
+    assert certify(slow, slow, w, CFG, LIM).ok  # the plain model: clear
+    c = certify(slow, slow, w, cfg, LIM)
+    assert not c.ok and "may be a person" in c.reason
+    assert certify(Twist(0.0, 1.0), Twist(0.0, 0.0), w, cfg, LIM).ok  # turning in place
+    side = world(np.array([[0.0, 0.30]]), scan=np.full(len(ANG), 3.0))  # 90° left, 8 cm gap
+    assert certify(Twist(0.1, 0.0), Twist(0.1, 0.0), side, cfg, LIM).ok
+    far, scan = wall_at(0.60)
+    assert certify(slow, slow, world(far, scan=scan), cfg, LIM).ok
