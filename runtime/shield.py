@@ -343,10 +343,9 @@ def certify(cmd: Twist, state: Twist, world: ShieldWorld, cfg: ShieldConfig,
             # a point already inside the footprint may not come any closer (see module docs)
             outside = d[0] >= R
             need = np.where(outside, R + slack_c, d[0] - slack_c)[None, :]
-            approach = np.zeros_like(d)
-            if cfg.untracked_approach_m_s > 0.0:
-                approach = np.where(outside[None, :], _approach_margin(
-                    cfg, c, pose[:, 2], vs, ts, q, d), 0.0)
+            approach = (np.where(outside[None, :],
+                                 _approach_margin(cfg, c, pose[:, 2], vs, ts, q, d), 0.0)
+                        if cfg.untracked_approach_m_s > 0.0 else np.zeros_like(d))
             marg = d - need - approach
             i, j = np.unravel_index(int(np.argmin(marg)), marg.shape)
             margin = float(marg[i, j])

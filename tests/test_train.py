@@ -69,7 +69,8 @@ def test_driving_to_the_goal_earns_progress_and_the_success_bonus(tmp_path):
         done = terminated or truncated
     assert terminated and info["outcome"] == "success"
     assert rewards[-1] > cfg.success  # the bonus, on top of the last cycle's progress
-    progress = start - float(np.hypot(*(env.world.goal - [env.world.robot.x, 0.0])))
+    robot = env.world.robot
+    progress = start - float(np.hypot(*(env.world.goal - [robot.x, robot.y])))
     expected = (cfg.progress_per_m * progress - cfg.time_per_s * info["time_s"] + cfg.success)
     assert total == pytest.approx(expected, abs=0.05)  # the shield never had to step in here
     assert sum(r > 0 for r in rewards[5:]) == len(rewards) - 5  # once moving: every cycle gains
