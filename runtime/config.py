@@ -32,6 +32,7 @@ from runtime.schema import (
     setting,
 )
 from runtime.shield import ShieldConfig
+from runtime.stall_recovery import RecoveryConfig
 from runtime.tracking import TrackerConfig
 
 __all__ = [
@@ -168,6 +169,8 @@ class Config:
     tracking: TrackerConfig = section(TrackerConfig, "clusters → tracked people with velocity")
     dwa: DWAConfig = section(DWAConfig, "the fixed-budget Dynamic Window Approach")
     shield: ShieldConfig = section(ShieldConfig, "the safety shield that certifies every command")
+    recovery: RecoveryConfig = section(
+        RecoveryConfig, "the DWA job's stall recovery: step away from what blocks it, then go on")
     policy: PolicyConfig = section(PolicyConfig, "the TD3 actor (onnxruntime) of the safemove planner")
     limits: LimitsConfig = section(LimitsConfig, "velocity and acceleration limits, applied last")
 

@@ -29,6 +29,13 @@ clearance cap. Raw terms of one sample:
 Admissible (Fox et al.): the sample can stop before its first colliding step:
 v² ≤ 2·decel_max·s_free, s_free = |v|·(time of the last step before the first collision).
 A collision later than that only lowers the clearance term.
+An obstacle that already overlaps the footprint with the robot standing where it is (a person
+who stepped up beside it, a wall the robot was pushed near) would make every moving sample
+collide at once and freeze the robot beside it, moving away included; as in the shield, it
+collides only where a sample brings it closer than that: each track's gap counts from its own
+overlap at the first step, the static distance field's from its value at the robot (the field
+holds the nearest point only, so while the robot overlaps one point the others get the same
+allowance; the shield checks points one by one).
 
 Static clearance comes from a distance transform of an occupancy grid (grid_cell_m) built once
 per call over the region the window's rollouts can reach plus the clearance reach; the
@@ -159,6 +166,12 @@ class Prepared:
         """Distance from points p (..., steps, 2) at each step to that step's rollout box."""
         gap = np.maximum(np.maximum(self.step_lo - p, p - self.step_hi), 0.0)
         return np.hypot(gap[..., 0], gap[..., 1])
+
+
+def overlap_floor(gap_now: np.ndarray | float) -> np.ndarray | float:
+    """The gap below which a sample collides with an obstacle whose gap is `gap_now` with the
+    robot standing where it is: 0, or that gap where the obstacle already overlaps (negative)."""
+    return np.minimum(gap_now, 0.0)
 
 
 def dynamic_window(cfg: DWAConfig, lim: LimitsConfig, v0: float, w0: float
@@ -334,7 +347,11 @@ class _Evaluator:
         reach_r = np.asarray(obs_radius, dtype=np.float64).reshape(-1, steps) + prep.r_eff
         far = prep.box_distance(pos)
         keep = (far <= np.maximum(cfg.density_range_m, reach_r + cfg.clearance_cap_m)).any(1)
-        pos, reach_r = pos[keep].astype(np.float32), reach_r[keep].astype(np.float32)
+        pos, reach_r = pos[keep], reach_r[keep]
+        # an obstacle already over the footprint where the robot stands counts only where a
+        # sample brings it closer than that (module docs); the reach shrinks by the overlap
+        reach_r = reach_r + overlap_floor(np.hypot(pos[:, 0, 0], pos[:, 0, 1]) - reach_r[:, 0])[:, None]
+        pos, reach_r = pos.astype(np.float32), reach_r.astype(np.float32)
         c = prep.clusters
         if len(c):
             c = c[(prep.box_distance(c[:, None, :]) <= cfg.density_range_m).any(axis=1)]
@@ -346,6 +363,8 @@ class _Evaluator:
         self.reach_r = reach_r[:, :, None]
         if prep.dist_grid is not None:
             self.grid_flat = prep.dist_grid.ravel() - np.float32(prep.r_eff)
+            ix, iy = prep.cell_index(0.0, 0.0, cfg.grid_cell_m)
+            self.grid_flat -= np.float32(overlap_floor(self.grid_flat[ix * prep.shape[1] + iy]))
 
     def _static_gap(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Gap to the static points per rollout point: one flat grid lookup each."""

@@ -3,7 +3,8 @@
 Each RUNNING cycle (runtime.planning_step): the goal and the tracks' constant-velocity
 predictions go into base_link, DWA picks the best admissible (v, ω) within its deadline, and the
 shield certifies it or puts a certified DWA candidate (or a brake) in its place. Every
-intervention is counted by reason.
+intervention is counted by reason. When the robot has stood too long short of the goal, the
+stall recovery (runtime.stall_recovery) points DWA away from what blocks it for a while.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from typing import Any
 
 from runtime.config import Config
 from runtime.planning_step import PlanningStep
+from runtime.stall_recovery import StallRecovery
 from runtime.types import STOP, Odometry, Twist
 from runtime.world_model import WorldState
 
@@ -25,6 +27,7 @@ class DWAJob:
     def __init__(self, goal_odom: tuple[float, float], config: Config,
                  clock: Callable[[], float] | None) -> None:
         self._step = PlanningStep(goal_odom, config, clock, "DWA")
+        self._recovery = StallRecovery(config.recovery)
 
     @property
     def finished(self) -> bool:
@@ -38,10 +41,12 @@ class DWAJob:
         """Nothing to pause: each cycle plans from the present."""
 
     def step(self, now: float, odom: Odometry, world: WorldState | None) -> Twist:
-        ctx = self._step.prepare(now, odom, world)
+        plan_goal = (None if world is None
+                     else self._recovery.planning_goal(now, odom, world, self._step.goal))
+        ctx = self._step.prepare(now, odom, world, plan_goal)
         if ctx is None:
             return STOP
         return self._step.certify(Twist(*map(float, ctx.dwa.best)), ctx)
 
     def summary(self) -> dict[str, Any]:
-        return self._step.summary()
+        return {**self._step.summary(), "stall_escapes": self._recovery.escapes}

@@ -56,6 +56,12 @@ def plan_reference(cfg: DWAConfig, lim: LimitsConfig, v0: float, omega0: float, 
     clusters = prep.clusters.tolist()
     grid = None if prep.dist_grid is None else prep.dist_grid.tolist()
     gx, gy = float(goal[0]), float(goal[1])
+    # gaps count from an obstacle's overlap where the robot stands (runtime.dwa's module docs)
+    floors = [min(math.hypot(*obs[j][0]) - rad[j][0] - prep.r_eff, 0.0) for j in range(len(obs))]
+    static_floor = 0.0
+    if grid is not None:
+        ix, iy = prep.cell_index(0.0, 0.0, cfg.grid_cell_m)
+        static_floor = min(grid[ix][iy] - prep.r_eff, 0.0)
     vs, ws = (axis.tolist() for axis in grid_axes(cfg, prep.window))
 
     samples, raws = [], {"heading": [], "clearance": [], "velocity": [], "density": []}
@@ -72,11 +78,11 @@ def plan_reference(cfg: DWAConfig, lim: LimitsConfig, v0: float, omega0: float, 
                 gap_k = math.inf
                 if grid is not None:
                     ix, iy = prep.cell_index(x, y, cfg.grid_cell_m)
-                    gap_k = grid[ix][iy] - prep.r_eff
+                    gap_k = grid[ix][iy] - prep.r_eff - static_floor
                 for j in range(len(obs)):
                     ox, oy = obs[j][k]
                     d = math.sqrt((x - ox) ** 2 + (y - oy) ** 2)
-                    gap_k = min(gap_k, d - rad[j][k] - prep.r_eff)
+                    gap_k = min(gap_k, d - rad[j][k] - prep.r_eff - floors[j])
                     closest[j] = min(closest[j], d)
                     dist_sum[j] += d
                 for c, (ox, oy) in enumerate(clusters):

@@ -130,6 +130,43 @@ def test_everything_blocked_returns_braking_sample():
     assert res.best_path.shape == (STEPS, 3)
 
 
+def _beside(y: float) -> tuple[np.ndarray, np.ndarray]:
+    """A person standing at (0, y), radius 0.3 m: over the footprint for |y| < 0.53 m."""
+    return np.tile([0.0, y], (1, STEPS, 1)), np.full((1, STEPS), 0.3)
+
+
+def test_a_person_already_over_the_footprint_only_forbids_coming_closer():
+    """A person standing 0.45 m to the left overlaps the footprint by 8 cm. Driving on toward
+    the goal or turning away stays admissible; turning into them comes closer at once and is
+    not. Without the overlap rule every moving sample collided at the first step and was
+    inadmissible: the robot froze beside them."""
+    pos, rad = _beside(0.45)
+    goal = np.array([3.0, 0.0])
+    on = plan_coarse(CFG, LIM, 0.2, 0.0, goal, np.zeros((0, 2)), pos, rad)
+    assert on.admissible_best and on.best[0] > 0.1
+    away = plan_coarse(CFG, LIM, 0.2, -1.0, goal, np.zeros((0, 2)), pos, rad)
+    assert away.admissible.all()
+    into = plan_coarse(CFG, LIM, 0.2, 1.0, goal, np.zeros((0, 2)), pos, rad)
+    assert not into.admissible.any()
+    for w0, res in ((0.0, on), (-1.0, away), (1.0, into)):
+        ref = plan_reference(CFG, LIM, 0.2, w0, goal, np.zeros((0, 2)), pos, rad)
+        np.testing.assert_array_equal(res.admissible[:400], ref.admissible)
+
+
+def test_a_wall_already_over_the_footprint_only_forbids_coming_closer():
+    wall = np.stack([np.linspace(-1.0, 2.0, 301), np.full(301, 0.2)], -1)  # 0.2 m to the left
+    goal = np.array([3.0, 0.0])
+    on = plan_coarse(CFG, LIM, 0.2, 0.0, goal, wall)
+    v, w = on.samples[:400, 0], on.samples[:400, 1]
+    assert on.admissible_best and on.best[0] > 0.1
+    assert on.admissible[(v == v.max()) & (w <= 0.0)].all()  # along it or away
+    into = plan_coarse(CFG, LIM, 0.2, 1.0, goal, wall)
+    assert (into.raw["clearance"] == 0).all()  # every arc into it comes closer
+    for w0, res in ((0.0, on), (1.0, into)):
+        ref = plan_reference(CFG, LIM, 0.2, w0, goal, wall)
+        np.testing.assert_array_equal(res.admissible[:400], ref.admissible)
+
+
 class FakeClock:
     def __init__(self, tick: float):
         self.t, self.tick, self.reads = 0.0, tick, 0

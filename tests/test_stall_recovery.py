@@ -1,0 +1,81 @@
+"""Stall recovery: when it starts an escape, where the escape goal lies, when it ends."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from runtime.stall_recovery import RecoveryConfig, StallRecovery, nearest_obstacle_odom
+from runtime.tracking import Track
+from runtime.types import Odometry
+from runtime.world_model import WorldState
+
+GOAL = np.array([5.0, 0.0])
+
+
+def world(points_base=(), tracks=()) -> WorldState:
+    return WorldState(0.0, np.zeros(0), np.zeros(0, bool), np.zeros(0),
+                      np.asarray(points_base, float).reshape(-1, 2), list(tracks), True)
+
+
+def person(pos, radius=0.3) -> Track:
+    return Track(1, np.array(pos, float), np.zeros(2), radius, np.eye(4) * 0.01, 1.0, 5, True)
+
+
+def test_an_escape_starts_after_the_stall_time_and_heads_away_from_the_nearest_obstacle():
+    rec = StallRecovery(RecoveryConfig(stall_s=4.0, escape_goal_m=1.0))
+    odom = Odometry(x=1.0, y=2.0, theta=math.pi / 2, distance=3.0)  # facing +y in odom
+    w = world(points_base=[(0.4, 0.0), (2.0, 1.0)])  # nearest: 0.4 m ahead = odom (1.0, 2.4)
+    for t in np.arange(0.0, 4.0, 0.05):
+        assert rec.planning_goal(float(t), odom, w, GOAL) is GOAL
+    goal = rec.planning_goal(4.0, odom, w, GOAL)
+    np.testing.assert_allclose(goal, [1.0, 1.0], atol=1e-12)  # 1 m behind, away from it
+    assert rec.escapes == 1
+
+
+def test_travel_resets_the_stall_timer():
+    rec = StallRecovery(RecoveryConfig(stall_s=4.0, stall_distance_m=0.05))
+    w = world(points_base=[(0.4, 0.0)])
+    for k, t in enumerate(np.arange(0.0, 20.0, 0.05)):
+        odom = Odometry(x=0.01 * k, distance=0.01 * k)  # 0.2 m/s
+        assert rec.planning_goal(float(t), odom, w, GOAL) is GOAL
+    assert rec.escapes == 0
+
+
+def test_the_escape_ends_after_its_distance_or_its_timeout_then_the_timer_starts_afresh():
+    cfg = RecoveryConfig(stall_s=2.0, escape_distance_m=0.4, escape_timeout_s=5.0)
+    rec = StallRecovery(cfg)
+    w = world(tracks=[person((0.0, 0.5))])  # a person 0.5 m to the left (odom = base here)
+    still = Odometry()
+    rec.planning_goal(0.0, still, w, GOAL)
+    escape = rec.planning_goal(2.0, still, w, GOAL)
+    np.testing.assert_allclose(escape, [0.0, -1.0], atol=1e-12)
+    assert rec.planning_goal(2.1, Odometry(distance=0.39), w, GOAL) is escape
+    assert rec.planning_goal(2.2, Odometry(distance=0.40), w, GOAL) is GOAL  # travelled
+    assert rec.planning_goal(4.1, Odometry(distance=0.40), w, GOAL) is GOAL  # fresh timer
+    again = rec.planning_goal(4.2, Odometry(distance=0.40), w, GOAL)
+    assert again is not GOAL and rec.escapes == 2
+    assert rec.planning_goal(9.1, Odometry(distance=0.40), w, GOAL) is again
+    assert rec.planning_goal(9.25, Odometry(distance=0.40), w, GOAL) is GOAL  # timed out
+
+
+def test_no_escape_with_nothing_to_step_away_from_or_when_switched_off():
+    rec = StallRecovery(RecoveryConfig(stall_s=1.0))
+    for t in np.arange(0.0, 5.0, 0.05):
+        assert rec.planning_goal(float(t), Odometry(), world(), GOAL) is GOAL
+    off = StallRecovery(RecoveryConfig(stall_s=0.0))
+    for t in np.arange(0.0, 5.0, 0.05):
+        assert off.planning_goal(float(t), Odometry(), world([(0.3, 0.0)]), GOAL) is GOAL
+    assert rec.escapes == off.escapes == 0
+
+
+def test_the_nearest_obstacle_is_judged_by_a_track_s_edge_not_its_centre():
+    w = world(points_base=[(0.6, 0.0)], tracks=[person((0.0, 0.8), radius=0.3)])
+    np.testing.assert_allclose(nearest_obstacle_odom(Odometry(), w), [0.0, 0.8])  # edge 0.5
+    w = world(points_base=[(0.4, 0.0)], tracks=[person((0.0, 0.8), radius=0.3)])
+    np.testing.assert_allclose(nearest_obstacle_odom(Odometry(), w), [0.4, 0.0])
+    assert nearest_obstacle_odom(Odometry(), world()) is None
+    assert nearest_obstacle_odom(Odometry(), world(tracks=[person((1, 1))])) == pytest.approx(
+        [1.0, 1.0])
