@@ -32,10 +32,11 @@ A collision later than that only lowers the clearance term.
 An obstacle that already overlaps the footprint with the robot standing where it is (a person
 who stepped up beside it, a wall the robot was pushed near) would make every moving sample
 collide at once and freeze the robot beside it, moving away included; as in the shield, it
-collides only where a sample brings it closer than that: each track's gap counts from its own
-overlap at the first step, the static distance field's from its value at the robot (the field
-holds the nearest point only, so while the robot overlaps one point the others get the same
-allowance; the shield checks points one by one).
+collides only where a sample brings it closer than it comes to the robot standing still: a
+track over the footprint at the first step, where its centre is nearer the standing robot than
+its reach (its disc grows, or it walks in); the static distance field, below its value at the
+robot (the field holds the nearest point only, so while the robot overlaps one point the others
+get the same allowance; the shield checks points one by one).
 
 Static clearance comes from a distance transform of an occupancy grid (grid_cell_m) built once
 per call over the region the window's rollouts can reach plus the clearance reach; the
@@ -168,10 +169,19 @@ class Prepared:
         return np.hypot(gap[..., 0], gap[..., 1])
 
 
-def overlap_floor(gap_now: np.ndarray | float) -> np.ndarray | float:
-    """The gap below which a sample collides with an obstacle whose gap is `gap_now` with the
-    robot standing where it is: 0, or that gap where the obstacle already overlaps (negative)."""
-    return np.minimum(gap_now, 0.0)
+def overlap_floor(gap_now: float) -> float:
+    """The gap to the static points below which a sample collides, `gap_now` being the gap with
+    the robot standing where it is: 0, or that gap where a point already overlaps (negative)."""
+    return min(gap_now, 0.0)
+
+
+def standing_reach(pos: np.ndarray, reach: np.ndarray) -> np.ndarray:
+    """Tracks' centre distances (T, steps) below which a sample collides: `reach` (radius +
+    r_eff), but for a track over the footprint at the first step with the robot standing where
+    it is, no more than its distance to the standing robot at each step (module docs)."""
+    stand = np.hypot(pos[..., 0], pos[..., 1])
+    over = stand[:, :1] < reach[:, :1]
+    return np.where(over, np.minimum(reach, stand), reach)
 
 
 def dynamic_window(cfg: DWAConfig, lim: LimitsConfig, v0: float, w0: float
@@ -348,9 +358,7 @@ class _Evaluator:
         far = prep.box_distance(pos)
         keep = (far <= np.maximum(cfg.density_range_m, reach_r + cfg.clearance_cap_m)).any(1)
         pos, reach_r = pos[keep], reach_r[keep]
-        # an obstacle already over the footprint where the robot stands counts only where a
-        # sample brings it closer than that (module docs); the reach shrinks by the overlap
-        reach_r = reach_r + overlap_floor(np.hypot(pos[:, 0, 0], pos[:, 0, 1]) - reach_r[:, 0])[:, None]
+        reach_r = standing_reach(pos, reach_r)
         pos, reach_r = pos.astype(np.float32), reach_r.astype(np.float32)
         c = prep.clusters
         if len(c):
@@ -364,7 +372,7 @@ class _Evaluator:
         if prep.dist_grid is not None:
             self.grid_flat = prep.dist_grid.ravel() - np.float32(prep.r_eff)
             ix, iy = prep.cell_index(0.0, 0.0, cfg.grid_cell_m)
-            self.grid_flat -= np.float32(overlap_floor(self.grid_flat[ix * prep.shape[1] + iy]))
+            self.grid_flat -= np.float32(overlap_floor(float(self.grid_flat[ix * prep.shape[1] + iy])))
 
     def _static_gap(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Gap to the static points per rollout point: one flat grid lookup each."""

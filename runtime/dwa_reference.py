@@ -57,7 +57,7 @@ def plan_reference(cfg: DWAConfig, lim: LimitsConfig, v0: float, omega0: float, 
     grid = None if prep.dist_grid is None else prep.dist_grid.tolist()
     gx, gy = float(goal[0]), float(goal[1])
     # gaps count from an obstacle's overlap where the robot stands (runtime.dwa's module docs)
-    floors = [min(math.hypot(*obs[j][0]) - rad[j][0] - prep.r_eff, 0.0) for j in range(len(obs))]
+    over = [math.hypot(*obs[j][0]) < rad[j][0] + prep.r_eff for j in range(len(obs))]
     static_floor = 0.0
     if grid is not None:
         ix, iy = prep.cell_index(0.0, 0.0, cfg.grid_cell_m)
@@ -82,7 +82,10 @@ def plan_reference(cfg: DWAConfig, lim: LimitsConfig, v0: float, omega0: float, 
                 for j in range(len(obs)):
                     ox, oy = obs[j][k]
                     d = math.sqrt((x - ox) ** 2 + (y - oy) ** 2)
-                    gap_k = min(gap_k, d - rad[j][k] - prep.r_eff - floors[j])
+                    reach = rad[j][k] + prep.r_eff
+                    if over[j]:  # no closer than to the robot standing still
+                        reach = min(reach, math.hypot(ox, oy))
+                    gap_k = min(gap_k, d - reach)
                     closest[j] = min(closest[j], d)
                     dist_sum[j] += d
                 for c, (ox, oy) in enumerate(clusters):

@@ -37,20 +37,28 @@ Obstacle model (what must stay clear, exactly):
       memory holds points (a) — the floor behind it was seen this frame; with "occupied" a lead
       point in a known bin's blind zone (beyond the current disc) is occupied too (strict; it
       forbids all forward motion when blind_range > R + unseen_tolerance).
-An obstacle that already violates (a) or (b) at t = 0 (a track's inflated disc over the
-footprint, a point inside it) makes every command fail the rule as stated, rotation in place
-included, and would freeze the robot where it stands. For such an obstacle the rule becomes:
-it must not get any closer than it is at t = 0 (its distance, less the track's k_sigma·std,
-never drops below the t = 0 value, up to twice the discretisation slack). Moving away or turning
-in place passes; a person walking into the robot fails every command, so the shield brakes.
+An obstacle that violates (a) or (b) even if the robot brakes now (a point inside the
+footprint; a track whose inflated disc is over it, or reaches it by walking in or by its std
+growing) makes every command fail the rule as stated, rotation in place included, and would
+freeze the robot where it stands. For such an obstacle the rule becomes: at each time the
+command must not bring it any closer than the BRAKING PATH does (the shield's own fallback,
+`brake_command` from `state`, rolled out the same way; it stands where it stops), less one
+discretisation slack, wherever that path's gap is below two slacks; elsewhere the rule as
+stated holds (the two meet continuously). Turning in place and moving away pass; approaching
+does not; the robot never makes such a contact worse than braking would, and may step aside.
+Compared with the gap at t = 0 instead, a person walking in or one whose std grew failed every
+command, and so did every command while odometry's wheel quantisation reported a creep of
+7 mm/s during a turn in place: the robot froze beside a person until they left, and in the
+simulator they waited for each other.
 Discretisation is made conservative: the check at sample times uses slacks (half the distance the
 centre / a track / the clearance can change between samples for (a)/(b); a full step of lead-point
 motion, as a dilation of bearing and range, for (c)/(d)), so a continuous-time violation of the
 model is always caught at the neighbouring sample.
 
 `shield` passes a certified command UNCHANGED; otherwise it substitutes the certified DWA
-candidate nearest in normalised (v, ω) (ties: lowest cost); otherwise it brakes: v toward 0 by
-decel_max·period and ω toward 0 by alpha_max·period. Every intervention carries a reason.
+candidate nearest in normalised (v, ω) (ties: lowest cost); otherwise the command's turn in
+place (v = 0, its ω) if that is certified; otherwise it brakes: v toward 0 by decel_max·period
+and ω toward 0 by alpha_max·period. Every intervention carries a reason.
 """
 
 from __future__ import annotations
@@ -329,6 +337,7 @@ def certify(cmd: Twist, state: Twist, world: ShieldWorld, cfg: ShieldConfig,
     slack_c = 0.5 * vmax * h + 1e-9
     best = (math.inf, 0.0)
     failures: list[tuple[float, str]] = []
+    ref = braking_path(state, cfg, limits, ts) if len(wa.points) or len(wa.tracks) else c
 
     # (a) static points: bounding-box prefilter, then all distances
     pts = wa.points
@@ -340,13 +349,15 @@ def certify(cmd: Twist, state: Twist, world: ShieldWorld, cfg: ShieldConfig,
         q = pts[near]
         if len(q):
             d = np.sqrt(((c[:, None, :] - q[None, :, :]) ** 2).sum(axis=2))  # (N, Q)
-            # a point already inside the footprint may not come any closer (see module docs)
+            # where braking would bring a point over the footprint, the command may bring it no
+            # closer than braking would (see module docs)
+            ref_gap = np.sqrt(((ref[:, None, :] - q[None, :, :]) ** 2).sum(axis=2)) - R
+            floor = np.minimum(ref_gap - 2.0 * slack_c, 0.0)  # one slack of tolerance
             outside = d[0] >= R
-            need = np.where(outside, R + slack_c, d[0] - slack_c)[None, :]
             approach = (np.where(outside[None, :],
                                  _approach_margin(cfg, c, pose[:, 2], vs, ts, q, d), 0.0)
                         if cfg.untracked_approach_m_s > 0.0 else np.zeros_like(d))
-            marg = d - need - approach
+            marg = d - R - slack_c - floor - approach
             i, j = np.unravel_index(int(np.argmin(marg)), marg.shape)
             margin = float(marg[i, j])
             best = min(best, (margin, float(ts[i])))
@@ -356,8 +367,8 @@ def certify(cmd: Twist, state: Twist, world: ShieldWorld, cfg: ShieldConfig,
                 jbad = int(np.argmax(marg[ibad] < 0))
                 p = q[jbad]
                 what = ("drive at (it may be a person walking in)" if approach[ibad, jbad] > 0
-                        else f"come within {R:.2f} m of" if d[0, jbad] >= R
-                        else "come closer to")
+                        else f"come within {R:.2f} m of" if floor[ibad, jbad] == 0.0
+                        else "come closer than braking to")
                 failures.append((tbad, (f"cmd would {what} the obstacle point "
                                        f"({p[0]:.2f}, {p[1]:.2f}) at t={tbad:.2f} s")))
 
@@ -368,8 +379,13 @@ def certify(cmd: Twist, state: Twist, world: ShieldWorld, cfg: ShieldConfig,
         slack_t = 0.5 * (vmax + wa.track_speed + cfg.k_sigma * wa.std_rate) * h + 1e-9
         dist = np.hypot(c[None, :, 0] - tp[..., 0], c[None, :, 1] - tp[..., 1])
         gap = dist - (R + wa.radii + cfg.k_sigma * ts_std)  # (T, N)
-        # a track already overlapping the footprint may not get any closer (see module docs)
-        floor = np.where(gap[:, :1] >= 0, 0.0, gap[:, :1] - slack_t)
+        # where a track would overlap the footprint of the robot braking now, it may come no
+        # closer than that (see module docs)
+        braking = (np.hypot(ref[None, :, 0] - tp[..., 0], ref[None, :, 1] - tp[..., 1])
+                   - (R + wa.radii + cfg.k_sigma * ts_std))
+        # one slack of tolerance (the two paths' samples fall differently on phase boundaries);
+        # continuous where the rules meet
+        floor = np.minimum(braking - 2.0 * slack_t, 0.0)
         marg = gap - slack_t - floor
         a, k = np.unravel_index(int(np.argmin(marg)), marg.shape)
         best = min(best, (float(marg[a, k]), float(ts[k])))
@@ -411,6 +427,14 @@ def certify(cmd: Twist, state: Twist, world: ShieldWorld, cfg: ShieldConfig,
         failures.sort(key=lambda x: x[0])
         return Certificate(False, failures[0][1], best[0], best[1])
     return Certificate(True, None, best[0], best[1])
+
+
+def braking_path(state: Twist, cfg: ShieldConfig, limits: LimitsConfig, ts: np.ndarray
+                 ) -> np.ndarray:
+    """(N, 2) where the robot is at times ts if the shield brakes now (its fallback), standing
+    where it stops."""
+    rt, rpose, *_ = rollout(brake_command(state, cfg, limits), state, cfg, limits)
+    return np.stack([np.interp(ts, rt, rpose[:, 0]), np.interp(ts, rt, rpose[:, 1])], axis=1)
 
 
 def brake_command(state: Twist, cfg: ShieldConfig, limits: LimitsConfig) -> Twist:
@@ -458,7 +482,14 @@ def shield(cmd: Twist, state: Twist, candidates: np.ndarray, costs: np.ndarray |
             ci = certify(tw, state, world, cfg, limits, wa)
             if ci.ok:
                 return ShieldDecision(tw, True, f"replaced by candidate {int(i)}: {cert.reason}", ci)
+    why = "out of time for candidates" if out_of_time else "no certified candidate"
+    if cmd.is_finite() and cmd.omega != 0.0:
+        # the planner's turn without its translation: where every candidate drives on into
+        # something (the nearest max_candidates are alike), turning is often still free
+        turn = Twist(0.0, cmd.omega)
+        ct = certify(turn, state, world, cfg, limits, wa)
+        if ct.ok:
+            return ShieldDecision(turn, True, f"turning in place, {why}: {cert.reason}", ct)
     br = brake_command(state, cfg, limits)
     cb = certify(br, state, world, cfg, limits, wa)
-    why = "out of time for candidates" if out_of_time else "no certified candidate"
     return ShieldDecision(br, True, f"braking, {why}: {cert.reason}", cb)

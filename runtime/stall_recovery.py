@@ -9,10 +9,11 @@ one of them, the same for every planner decision downstream:
 
   stalled  the robot's odometry travelled less than `stall_distance_m` in the last `stall_s`
            seconds, short of the goal;
-  escape   DWA plans toward a temporary goal `escape_goal_m` away from the nearest obstacle
-           (remembered point or track, in the odom frame) instead of the real goal, until the
-           robot has travelled `escape_distance_m` or `escape_timeout_s` has passed; then the
-           real goal again, and a fresh stall timer.
+  escape   DWA plans toward a temporary goal `escape_goal_m` away in the most open direction
+           (of 36, the one whose straight segment keeps the most clearance from remembered
+           points and tracks) instead of the real goal, until the robot has travelled
+           `escape_distance_m` or `escape_timeout_s` has passed; then the real goal again, and a
+           fresh stall timer.
 
 Every command still goes through DWA's admissibility and the shield; the escape only moves the
 goal. The goal-reached check always uses the real goal.
@@ -38,13 +39,13 @@ log = logging.getLogger("safemove.planner")
 @dataclass(frozen=True)
 class RecoveryConfig:
     stall_s: float = setting(
-        4.0, "the robot counts as stalled after travelling less than stall_distance_m for this"
+        8.0, "the robot counts as stalled after travelling less than stall_distance_m for this"
         " long (0 = no recovery)", "s", min=0.0, max=600.0)
     stall_distance_m: float = setting(0.05, "travel that resets the stall timer", "m",
                                       min=0.001, max=1.0)
     escape_goal_m: float = setting(
-        1.0, "the escape's temporary goal lies this far from the robot, away from the nearest"
-        " obstacle", "m", min=0.1, max=5.0)
+        1.0, "the escape's temporary goal lies this far from the robot, in the most open"
+        " direction", "m", min=0.1, max=5.0)
     escape_distance_m: float = setting(0.4, "the escape ends after this much travel", "m",
                                        min=0.01, max=5.0)
     escape_timeout_s: float = setting(8.0, "the escape ends after this long", "s", min=0.1,
@@ -86,36 +87,53 @@ class StallRecovery:
             return goal
         if now - self._anchor[0] < cfg.stall_s:
             return goal
-        nearest = nearest_obstacle_odom(odom, world)
-        if nearest is None:  # nothing to step away from: keep waiting for the goal's way
+        here = np.array([odom.x, odom.y])
+        centres, radii = obstacles_odom(odom, world)
+        heading = open_heading(here, centres, radii, cfg.escape_goal_m)
+        if heading is None:  # nothing near to step away from: keep waiting for the goal's way
             self._anchor = (now, odom.distance)
             return goal
-        here = np.array([odom.x, odom.y])
-        away = here - nearest
-        away /= max(float(np.hypot(*away)), 1e-9)
+        away = np.array([np.cos(heading), np.sin(heading)])
         self._escape = _Escape(now, odom.distance, here + cfg.escape_goal_m * away)
         self.escapes += 1
-        log.info("stalled %.1f s (%.3f m travelled): escaping toward (%.2f, %.2f), away from the"
-                 " obstacle at (%.2f, %.2f) (odom)", now - self._anchor[0],
-                 odom.distance - self._anchor[1], *self._escape.goal, *nearest)
+        log.info("stalled %.1f s (%.3f m travelled): escaping toward (%.2f, %.2f) (odom), the"
+                 " most open way", now - self._anchor[0], odom.distance - self._anchor[1],
+                 *self._escape.goal)
         return self._escape.goal
 
 
-def nearest_obstacle_odom(odom: Odometry, world: WorldState) -> np.ndarray | None:
-    """The nearest remembered point or confirmed track (by its edge) in the odom frame, or None
-    when the world holds neither."""
+def obstacles_odom(odom: Odometry, world: WorldState) -> tuple[np.ndarray, np.ndarray]:
+    """Remembered points and confirmed tracks in the odom frame: centres (K, 2), radii (K,)
+    (0 for points)."""
     c, s = np.cos(odom.theta), np.sin(odom.theta)
     pts = np.asarray(world.points_base, dtype=float).reshape(-1, 2)
-    cands = [np.stack([odom.x + c * pts[:, 0] - s * pts[:, 1],
-                       odom.y + s * pts[:, 0] + c * pts[:, 1]], axis=1)]
-    gaps = [np.hypot(pts[:, 0], pts[:, 1])]
+    centres = [np.stack([odom.x + c * pts[:, 0] - s * pts[:, 1],
+                         odom.y + s * pts[:, 0] + c * pts[:, 1]], axis=1)]
+    radii = [np.zeros(len(pts))]
     confirmed = [t for t in world.tracks if t.confirmed]
     if confirmed:
-        centres = np.array([t.position for t in confirmed], dtype=float)
-        cands.append(centres)
-        gaps.append(np.hypot(centres[:, 0] - odom.x, centres[:, 1] - odom.y)
-                    - np.array([t.radius for t in confirmed]))
-    where, gap = np.concatenate(cands), np.concatenate(gaps)
-    if not len(gap):
+        centres.append(np.array([t.position for t in confirmed], dtype=float))
+        radii.append(np.array([t.radius for t in confirmed], dtype=float))
+    return np.concatenate(centres), np.concatenate(radii)
+
+
+def open_heading(here: np.ndarray, centres: np.ndarray, radii: np.ndarray, length: float,
+                 headings: int = 36, step_m: float = 0.1) -> float | None:
+    """The heading (odom, rad) whose straight segment of `length` from `here` keeps the most
+    clearance from the obstacles (smallest gap at samples every `step_m`); None when no
+    obstacle is within `length` + 0.5 m (nothing to step away from). Away from the nearest
+    obstacle alone can lead into a second one (a robot between two people)."""
+    if not len(radii):
         return None
-    return where[int(np.argmin(gap))]
+    gaps_here = np.hypot(*(centres - here).T) - radii
+    near = gaps_here < length + 0.5
+    if not near.any():
+        return None
+    centres, radii = centres[near], radii[near]
+    angles = np.arange(headings) * (2.0 * np.pi / headings)
+    dirs = np.stack([np.cos(angles), np.sin(angles)], axis=1)  # (H, 2)
+    dists = np.arange(1, round(length / step_m) + 1) * step_m  # (S,)
+    samples = here + dirs[:, None, :] * dists[None, :, None]  # (H, S, 2)
+    gaps = (np.hypot(samples[:, :, None, 0] - centres[None, None, :, 0],
+                     samples[:, :, None, 1] - centres[None, None, :, 1]) - radii)  # (H, S, K)
+    return float(angles[int(np.argmax(gaps.min(axis=(1, 2))))])

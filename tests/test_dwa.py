@@ -130,9 +130,10 @@ def test_everything_blocked_returns_braking_sample():
     assert res.best_path.shape == (STEPS, 3)
 
 
-def _beside(y: float) -> tuple[np.ndarray, np.ndarray]:
-    """A person standing at (0, y), radius 0.3 m: over the footprint for |y| < 0.53 m."""
-    return np.tile([0.0, y], (1, STEPS, 1)), np.full((1, STEPS), 0.3)
+def _beside(y: float, growth: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """A person standing at (0, y), radius 0.3 m (+ growth·t, the prediction's uncertainty):
+    over the footprint for |y| < 0.53 m."""
+    return np.tile([0.0, y], (1, STEPS, 1)), (0.3 + growth * TIMES)[None]
 
 
 def test_a_person_already_over_the_footprint_only_forbids_coming_closer():
@@ -140,8 +141,13 @@ def test_a_person_already_over_the_footprint_only_forbids_coming_closer():
     the goal or turning away stays admissible; turning into them comes closer at once and is
     not. Without the overlap rule every moving sample collided at the first step and was
     inadmissible: the robot froze beside them."""
-    pos, rad = _beside(0.45)
     goal = np.array([3.0, 0.0])
+    pos, rad = _beside(0.45, growth=0.1)  # the disc grows faster than driving on gains
+    on = plan_coarse(CFG, LIM, 0.2, 0.0, goal, np.zeros((0, 2)), pos, rad)
+    assert on.admissible_best and on.best[0] > 0.1
+    ref = plan_reference(CFG, LIM, 0.2, 0.0, goal, np.zeros((0, 2)), pos, rad)
+    np.testing.assert_array_equal(on.admissible[:400], ref.admissible)
+    pos, rad = _beside(0.45)
     on = plan_coarse(CFG, LIM, 0.2, 0.0, goal, np.zeros((0, 2)), pos, rad)
     assert on.admissible_best and on.best[0] > 0.1
     away = plan_coarse(CFG, LIM, 0.2, -1.0, goal, np.zeros((0, 2)), pos, rad)

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 from hypothesis import given, settings
@@ -35,8 +36,9 @@ def world(points=None, tracks=None, std=None, radii=None, unknown=None, scan=Non
     )
 
 
-def violates(cmd: Twist, state: Twist, w: ShieldWorld, cfg=CFG, lim=LIM, h=2e-4) -> str | None:
-    """Independent brute force: RK2 at step h, every step checked against the model."""
+def _path(cmd: Twist, state: Twist, cfg: ShieldConfig, lim: LimitsConfig, h: float
+          ) -> tuple[np.ndarray, ...]:
+    """RK2 at step h of the certificate's motion model: times, x, y, θ, v until standstill."""
     u = apply_limits(cmd, state, cfg.period, lim)
     t1 = cfg.latency + cfg.period
     t_end = t1 + max(abs(u.v) / lim.decel_max, abs(u.omega) / lim.alpha_max)
@@ -52,7 +54,6 @@ def violates(cmd: Twist, state: Twist, w: ShieldWorld, cfg=CFG, lim=LIM, h=2e-4)
         return v, om
 
     n = math.ceil(t_end / h) + 1
-    R = cfg.robot_radius + cfg.margin
     x = y = th = 0.0
     times, xs, ys, ths, vs = [], [], [], [], []
     t = 0.0
@@ -67,18 +68,33 @@ def violates(cmd: Twist, state: Twist, w: ShieldWorld, cfg=CFG, lim=LIM, h=2e-4)
         t += h
         if t > t_end + h:
             break
-    T, X, Y, TH, V = map(np.array, (times, xs, ys, ths, vs))
+    return tuple(map(np.array, (times, xs, ys, ths, vs)))
+
+
+def violates(cmd: Twist, state: Twist, w: ShieldWorld, cfg=CFG, lim=LIM, h=2e-4) -> str | None:
+    """Independent brute force: RK2 at step h, every step checked against the model."""
+    R = cfg.robot_radius + cfg.margin
+    T, X, Y, TH, V = _path(cmd, state, cfg, lim, h)
     C = np.stack([X, Y], 1)
-    # an obstacle already violating at t = 0 may not come closer (tolerance: twice the
-    # shield's discretisation slack at check_dt, taken at the largest speeds of these worlds)
+    # braking now (v, ω each toward 0 by one period's worth), standing where it stops
+    brake = Twist(math.copysign(max(abs(state.v) - lim.decel_max * cfg.period, 0.0), state.v),
+                  math.copysign(max(abs(state.omega) - lim.alpha_max * cfg.period, 0.0),
+                                state.omega))
+    bt, bx, by, _, _ = _path(brake, state, cfg, lim, h)
+    B = np.stack([np.interp(T, bt, bx), np.interp(T, bt, by)], 1)
+    # where braking would bring an obstacle over the footprint, the command may bring it no
+    # closer than braking does (tolerance: twice the shield's discretisation slack at check_dt,
+    # taken at the largest speeds of these worlds)
+    u = apply_limits(cmd, state, cfg.period, lim)
     vmax = max(abs(state.v), abs(u.v))
     tol_point = vmax * cfg.check_dt + 1e-7
     tol_track = (vmax + TRACK_SPEED_MAX + cfg.k_sigma * STD_RATE_MAX) * cfg.check_dt + 1e-7
     P = np.asarray(w.points).reshape(-1, 2)
     if len(P):
-        d = np.linalg.norm(C[:, None] - P[None], axis=2)
-        need = np.where(d[0] >= R, R, d[0] - tol_point)
-        if np.any(d < need - 1e-7):
+        gap = np.linalg.norm(C[:, None] - P[None], axis=2) - R
+        ref = np.linalg.norm(B[:, None] - P[None], axis=2) - R
+        need = np.where(ref < tol_point, np.minimum(ref, 0.0) - tol_point, 0.0)
+        if np.any(gap < need - 1e-7):
             return "point"
     for i in range(len(w.track_radii)):
         k = np.arange(w.track_positions.shape[1]) * w.track_dt
@@ -86,8 +102,11 @@ def violates(cmd: Twist, state: Twist, w: ShieldWorld, cfg=CFG, lim=LIM, h=2e-4)
         px = np.interp(T, k, w.track_positions[i, :, 0])
         py = np.interp(T, k, w.track_positions[i, :, 1])
         sd = np.interp(T, k, w.track_std[i])
-        gap = np.hypot(X - px, Y - py) - (R + w.track_radii[i] + cfg.k_sigma * sd)
-        if np.any(gap < (0.0 if gap[0] >= 0 else gap[0] - tol_track) - 1e-7):
+        reach = R + w.track_radii[i] + cfg.k_sigma * sd
+        gap = np.hypot(X - px, Y - py) - reach
+        ref = np.hypot(B[:, 0] - px, B[:, 1] - py) - reach
+        need = np.where(ref < tol_track, np.minimum(ref, 0.0) - tol_track, 0.0)
+        if np.any(gap < need - 1e-7):
             return "track"
     beta = math.radians(cfg.lead_half_angle_deg)
     offs = np.linspace(-beta, beta, cfg.lead_rays)
@@ -129,7 +148,7 @@ def random_world(rng: np.random.Generator) -> ShieldWorld:
 
 
 twist = st.builds(Twist, st.floats(LIM.v_min, LIM.v_max), st.floats(-LIM.omega_max, LIM.omega_max))
-STATS = {"examples": 0, "passed_unchanged": 0, "substituted": 0, "braked": 0}
+STATS = {"examples": 0, "passed_unchanged": 0, "substituted": 0, "turned": 0, "braked": 0}
 
 
 @settings(max_examples=400, deadline=None)
@@ -151,6 +170,10 @@ def test_random_worlds_passed_commands_are_safe_and_certified_are_untouched(seed
     elif d.certificate.ok and d.reason.startswith("replaced"):
         STATS["substituted"] += 1
         assert any(d.command == Twist(float(a), float(b)) for a, b in cand)
+        assert violates(d.command, state, w) is None  # (1)
+    elif d.certificate.ok and d.reason.startswith("turning in place"):
+        STATS["turned"] += 1
+        assert d.command == Twist(0.0, cmd.omega)
         assert violates(d.command, state, w) is None  # (1)
     else:
         STATS["braked"] += 1
@@ -220,15 +243,29 @@ def test_an_obstacle_already_inside_the_footprint_may_not_come_closer():
     ahead = world(np.array([[0.15, 0.0]]))
     cert = certify(Twist(0.2, 0.0), Twist(0.0, 0.0), ahead, CFG, LIM)
     assert not cert.ok and "closer" in cert.reason
-    # a track overlapping the footprint: the same, and one walking in makes every command fail
+    # a track over the footprint of the robot standing still, now or by walking in or by its
+    # uncertainty growing: no closer than to the standing robot (compared with the t = 0 gap,
+    # or with no exception for a track walking in, these froze the robot)
     still = world(tracks=np.array([[[0.3, 0.0]] * 12]), std=np.zeros((1, 12)),
                   radii=np.array([0.2]))
-    assert certify(Twist(0.0, 1.0), Twist(0.0, 0.0), still, CFG, LIM).ok
-    assert not certify(Twist(0.2, 0.0), Twist(0.0, 0.0), still, CFG, LIM).ok
+    growing = world(tracks=np.array([[[0.3, 0.0]] * 12]), std=0.02 * np.arange(12)[None],
+                    radii=np.array([0.2]))
     coming = world(tracks=np.array([[[0.3 - 0.5 * 0.1 * k, 0.0] for k in range(12)]]),
                    std=np.zeros((1, 12)), radii=np.array([0.2]))
-    for cmd in (Twist(0.0, 1.0), Twist(0.0, 0.0), Twist(-0.1, 0.0)):
-        assert not certify(cmd, Twist(0.0, 0.0), coming, CFG, LIM).ok
+    arriving = world(tracks=np.array([[[0.5 - 1.0 * 0.1 * k, 0.0] for k in range(12)]]),
+                     std=np.zeros((1, 12)), radii=np.array([0.2]))  # clear now, in at 0.08 s
+    cfg = replace(CFG, reverse_into_unseen=True)  # backing away is not refused as unseen
+    for w in (still, growing, coming, arriving):
+        for cmd in (Twist(0.0, 1.0), Twist(0.0, 0.0), Twist(-0.1, 0.0)):  # turn, stand, away
+            assert certify(cmd, Twist(0.0, 0.0), w, cfg, LIM).ok
+        cert = certify(Twist(0.2, 0.0), Twist(0.2, 0.0), w, cfg, LIM)  # driving on into them
+        assert not cert.ok and "reach track" in cert.reason
+    # odometry reports a creep of a few mm/s during a turn in place (wheel ticks): the robot
+    # comes that much closer whatever it is told, and turning on is still no worse than braking
+    creep = Twist(0.007, 0.2)
+    for w in (still, ahead):
+        assert certify(Twist(0.0, 0.3), creep, w, cfg, LIM).ok
+        assert not certify(Twist(0.1, 0.3), creep, w, cfg, LIM).ok
 
 
 def test_unknown_bin_ahead_rejects_forward_motion():
@@ -252,6 +289,21 @@ def test_strict_blind_zone_forbids_forward_motion():
     assert certify(Twist(0.2, 0.0), Twist(0.2, 0.0), w, CFG, LIM).ok
     c = certify(Twist(0.2, 0.0), Twist(0.2, 0.0), w, ShieldConfig(blind_zone="occupied", untracked_approach_m_s=0.0), LIM)
     assert not c.ok and "blind zone" in c.reason
+
+
+def test_when_every_candidate_drives_into_something_the_command_s_turn_in_place_is_used():
+    """The nearest max_candidates candidates are often all alike (v > 0): turning is still free
+    against a wall just ahead, so the robot turns instead of freezing; with no turn asked for,
+    it brakes."""
+    pts, scan = wall_at(0.24)  # 2 cm from the footprint: the margin forbids closing on it
+    w = world(pts, scan=scan)
+    cfg = ShieldConfig()
+    forward = np.array([[0.1, 0.5], [0.05, 0.4], [0.025, 0.5]])
+    d = shield(Twist(0.1, 0.5), Twist(0.0, 0.0), forward, None, w, LIM, cfg)
+    assert d.intervened and d.command == Twist(0.0, 0.5)
+    assert d.reason.startswith("turning in place, no certified candidate")
+    d = shield(Twist(0.1, 0.0), Twist(0.0, 0.0), forward, None, w, LIM, cfg)
+    assert d.reason.startswith("braking") and d.command == Twist(0.0, 0.0)
 
 
 def test_nan_command_brakes():

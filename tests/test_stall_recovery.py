@@ -5,9 +5,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import pytest
 
-from runtime.stall_recovery import RecoveryConfig, StallRecovery, nearest_obstacle_odom
+from runtime.stall_recovery import RecoveryConfig, StallRecovery, obstacles_odom, open_heading
 from runtime.tracking import Track
 from runtime.types import Odometry
 from runtime.world_model import WorldState
@@ -24,14 +23,14 @@ def person(pos, radius=0.3) -> Track:
     return Track(1, np.array(pos, float), np.zeros(2), radius, np.eye(4) * 0.01, 1.0, 5, True)
 
 
-def test_an_escape_starts_after_the_stall_time_and_heads_away_from_the_nearest_obstacle():
+def test_an_escape_starts_after_the_stall_time_and_heads_the_most_open_way():
     rec = StallRecovery(RecoveryConfig(stall_s=4.0, escape_goal_m=1.0))
     odom = Odometry(x=1.0, y=2.0, theta=math.pi / 2, distance=3.0)  # facing +y in odom
-    w = world(points_base=[(0.4, 0.0), (2.0, 1.0)])  # nearest: 0.4 m ahead = odom (1.0, 2.4)
+    w = world(points_base=[(0.4, 0.0), (0.5, 0.3), (0.5, -0.3)])  # ahead (odom +y)
     for t in np.arange(0.0, 4.0, 0.05):
         assert rec.planning_goal(float(t), odom, w, GOAL) is GOAL
     goal = rec.planning_goal(4.0, odom, w, GOAL)
-    np.testing.assert_allclose(goal, [1.0, 1.0], atol=1e-12)  # 1 m behind, away from it
+    np.testing.assert_allclose(goal, [1.0, 1.0], atol=1e-12)  # 1 m behind, away from them
     assert rec.escapes == 1
 
 
@@ -71,11 +70,19 @@ def test_no_escape_with_nothing_to_step_away_from_or_when_switched_off():
     assert rec.escapes == off.escapes == 0
 
 
-def test_the_nearest_obstacle_is_judged_by_a_track_s_edge_not_its_centre():
-    w = world(points_base=[(0.6, 0.0)], tracks=[person((0.0, 0.8), radius=0.3)])
-    np.testing.assert_allclose(nearest_obstacle_odom(Odometry(), w), [0.0, 0.8])  # edge 0.5
-    w = world(points_base=[(0.4, 0.0)], tracks=[person((0.0, 0.8), radius=0.3)])
-    np.testing.assert_allclose(nearest_obstacle_odom(Odometry(), w), [0.4, 0.0])
-    assert nearest_obstacle_odom(Odometry(), world()) is None
-    assert nearest_obstacle_odom(Odometry(), world(tracks=[person((1, 1))])) == pytest.approx(
-        [1.0, 1.0])
+def test_the_escape_heads_the_most_open_way_not_just_away_from_the_nearest():
+    """Between a person to the east and one to the south-west, away from the nearest (east)
+    is west, into the other; the most open way is north-west."""
+    here = np.zeros(2)
+    centres = np.array([[0.49, 0.12], [-0.19, -0.46]])
+    heading = open_heading(here, centres, np.array([0.3, 0.3]), 1.0)
+    assert 100.0 <= math.degrees(heading) <= 160.0
+    assert open_heading(here, np.array([[5.0, 5.0]]), np.array([0.3]), 1.0) is None  # far
+
+
+def test_obstacles_are_points_and_confirmed_tracks_in_the_odom_frame():
+    odom = Odometry(x=1.0, y=2.0, theta=math.pi / 2)
+    unconfirmed = Track(2, np.array([9.0, 9.0]), np.zeros(2), 0.3, np.eye(4), 1.0, 1, False)
+    centres, radii = obstacles_odom(odom, world([(0.5, 0.0)], [person((3.0, 3.0)), unconfirmed]))
+    np.testing.assert_allclose(centres, [[1.0, 2.5], [3.0, 3.0]], atol=1e-12)
+    np.testing.assert_allclose(radii, [0.0, 0.3])
