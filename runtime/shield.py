@@ -42,9 +42,11 @@ footprint; a track whose inflated disc is over it, or reaches it by walking in o
 growing) makes every command fail the rule as stated, rotation in place included, and would
 freeze the robot where it stands. For such an obstacle the rule becomes: at each time the
 command must not bring it any closer than the BRAKING PATH does (the shield's own fallback,
-`brake_command` from `state`, rolled out the same way; it stands where it stops), less one
-discretisation slack, wherever that path's gap is below two slacks; elsewhere the rule as
-stated holds (the two meet continuously). Turning in place and moving away pass; approaching
+`brake_command` from `state`, rolled out the same way; it stands where it stops), less the
+two rollouts' integration mismatch (two sub-steps of the robot's own motion), wherever that
+path's gap is below the slack plus that tolerance; elsewhere the rule as stated holds (the two
+meet continuously). With the slack as tolerance, a fast track widened it to millimetres and
+the robot could creep on at 2 cm/s into a person walking at it. Turning in place and moving away pass; approaching
 does not; the robot never makes such a contact worse than braking would, and may step aside.
 Compared with the gap at t = 0 instead, a person walking in or one whose std grew failed every
 command, and so did every command while odometry's wheel quantisation reported a creep of
@@ -338,6 +340,10 @@ def certify(cmd: Twist, state: Twist, world: ShieldWorld, cfg: ShieldConfig,
     best = (math.inf, 0.0)
     failures: list[tuple[float, str]] = []
     ref = braking_path(state, cfg, limits, ts) if len(wa.points) or len(wa.tracks) else c
+    # the two paths' sub-steps fall differently on the phase boundaries: up to one sub-step's
+    # motion each (a tolerance of the robot's own speed only: a fast track must not widen it,
+    # or the robot may creep on into a person walking at it)
+    tol_ref = 2.0 * vmax * h / cfg.substeps + 1e-9
 
     # (a) static points: bounding-box prefilter, then all distances
     pts = wa.points
@@ -352,7 +358,7 @@ def certify(cmd: Twist, state: Twist, world: ShieldWorld, cfg: ShieldConfig,
             # where braking would bring a point over the footprint, the command may bring it no
             # closer than braking would (see module docs)
             ref_gap = np.sqrt(((ref[:, None, :] - q[None, :, :]) ** 2).sum(axis=2)) - R
-            floor = np.minimum(ref_gap - 2.0 * slack_c, 0.0)  # one slack of tolerance
+            floor = np.minimum(ref_gap - slack_c - tol_ref, 0.0)
             outside = d[0] >= R
             approach = (np.where(outside[None, :],
                                  _approach_margin(cfg, c, pose[:, 2], vs, ts, q, d), 0.0)
@@ -383,9 +389,7 @@ def certify(cmd: Twist, state: Twist, world: ShieldWorld, cfg: ShieldConfig,
         # closer than that (see module docs)
         braking = (np.hypot(ref[None, :, 0] - tp[..., 0], ref[None, :, 1] - tp[..., 1])
                    - (R + wa.radii + cfg.k_sigma * ts_std))
-        # one slack of tolerance (the two paths' samples fall differently on phase boundaries);
-        # continuous where the rules meet
-        floor = np.minimum(braking - 2.0 * slack_t, 0.0)
+        floor = np.minimum(braking - slack_t - tol_ref, 0.0)
         marg = gap - slack_t - floor
         a, k = np.unravel_index(int(np.argmin(marg)), marg.shape)
         best = min(best, (float(marg[a, k]), float(ts[k])))

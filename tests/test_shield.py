@@ -260,6 +260,11 @@ def test_an_obstacle_already_inside_the_footprint_may_not_come_closer():
             assert certify(cmd, Twist(0.0, 0.0), w, cfg, LIM).ok
         cert = certify(Twist(0.2, 0.0), Twist(0.2, 0.0), w, cfg, LIM)  # driving on into them
         assert not cert.ok and "reach track" in cert.reason
+    # creeping on at 2 cm/s into a person walking at the robot at 1 m/s is closer than braking
+    # (a HIL run had that contact when the tolerance grew with the track's speed)
+    creep_on = Twist(0.02, 0.0)
+    assert not certify(creep_on, creep_on, arriving, cfg, LIM).ok
+    assert certify(Twist(0.0, 0.5), creep_on, arriving, cfg, LIM).ok  # stopping, turning
     # odometry reports a creep of a few mm/s during a turn in place (wheel ticks): the robot
     # comes that much closer whatever it is told, and turning on is still no worse than braking
     creep = Twist(0.007, 0.2)
