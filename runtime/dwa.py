@@ -169,12 +169,6 @@ class Prepared:
         return np.hypot(gap[..., 0], gap[..., 1])
 
 
-def overlap_floor(gap_now: float) -> float:
-    """The gap to the static points below which a sample collides, `gap_now` being the gap with
-    the robot standing where it is: 0, or that gap where a point already overlaps (negative)."""
-    return min(gap_now, 0.0)
-
-
 def standing_reach(pos: np.ndarray, reach: np.ndarray) -> np.ndarray:
     """Tracks' centre distances (T, steps) below which a sample collides: `reach` (radius +
     r_eff), but for a track over the footprint at the first step with the robot standing where
@@ -371,8 +365,10 @@ class _Evaluator:
         self.reach_r = reach_r[:, :, None]
         if prep.dist_grid is not None:
             self.grid_flat = prep.dist_grid.ravel() - np.float32(prep.r_eff)
+            # a point already over the footprint where the robot stands: gaps count from that
+            # overlap (module docs)
             ix, iy = prep.cell_index(0.0, 0.0, cfg.grid_cell_m)
-            self.grid_flat -= np.float32(overlap_floor(float(self.grid_flat[ix * prep.shape[1] + iy])))
+            self.grid_flat -= min(self.grid_flat[ix * prep.shape[1] + iy], np.float32(0.0))
 
     def _static_gap(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Gap to the static points per rollout point: one flat grid lookup each."""

@@ -139,11 +139,9 @@ class PlanningStep:
                           deadline=self._deadline(self._cfg.shield.candidate_budget_s),
                           now=self._clock)
         if decision.intervened:
-            reason = decision.reason or ""
-            kind = ("replaced" if reason.startswith("replaced")
-                    else "turned" if reason.startswith("turning") else "braked")
-            self.interventions[kind] += 1
-            log.info("shield %s the %s command: %s", kind, self._decision, decision.reason)
+            self.interventions[decision.kind] += 1
+            log.info("shield %s the %s command: %s", decision.kind, self._decision,
+                     decision.reason)
         return decision.command
 
     def _deadline(self, budget_s: float) -> float:

@@ -161,9 +161,13 @@ class Certificate:
 @dataclass(frozen=True)
 class ShieldDecision:
     command: Twist
-    intervened: bool
+    kind: str  # "passed" | "replaced" (a DWA candidate) | "turned" (in place) | "braked"
     reason: str | None
     certificate: Certificate
+
+    @property
+    def intervened(self) -> bool:
+        return self.kind != "passed"
 
 
 def _brake(x: float, rate: float, t: np.ndarray) -> np.ndarray:
@@ -321,11 +325,11 @@ def _unseen(wa: _WorldArrays, cfg: ShieldConfig, pts: np.ndarray, slack: float
 
 
 def certify(cmd: Twist, state: Twist, world: ShieldWorld, cfg: ShieldConfig,
-            limits: LimitsConfig | None = None, arrays: _WorldArrays | None = None
-            ) -> Certificate:
+            limits: LimitsConfig | None = None, arrays: _WorldArrays | None = None,
+            braking: tuple[np.ndarray, np.ndarray] | None = None) -> Certificate:
     """Does `cmd`, held as described in the module docs, keep the footprint clear of the
-    obstacle model until the robot stands still? (`arrays`: `_arrays(world)`, when certifying
-    many commands against one world.)"""
+    obstacle model until the robot stands still? (`arrays`: `_arrays(world)`, `braking`:
+    `braking_rollout(state, …)`, when certifying many commands against one world and state.)"""
     limits = limits if limits is not None else LimitsConfig()
     if not (cmd.is_finite() and state.is_finite()):
         return Certificate(False, "non-finite command or state", -math.inf, 0.0)
@@ -339,7 +343,10 @@ def certify(cmd: Twist, state: Twist, world: ShieldWorld, cfg: ShieldConfig,
     slack_c = 0.5 * vmax * h + 1e-9
     best = (math.inf, 0.0)
     failures: list[tuple[float, str]] = []
-    ref = braking_path(state, cfg, limits, ts) if len(wa.points) or len(wa.tracks) else c
+    ref = c
+    if len(wa.points) or len(wa.tracks):
+        rt, rxy = braking if braking is not None else braking_rollout(state, cfg, limits)
+        ref = np.stack([np.interp(ts, rt, rxy[:, 0]), np.interp(ts, rt, rxy[:, 1])], axis=1)
     # the two paths' sub-steps fall differently on the phase boundaries: up to one sub-step's
     # motion each (a tolerance of the robot's own speed only: a fast track must not widen it,
     # or the robot may creep on into a person walking at it)
@@ -433,12 +440,12 @@ def certify(cmd: Twist, state: Twist, world: ShieldWorld, cfg: ShieldConfig,
     return Certificate(True, None, best[0], best[1])
 
 
-def braking_path(state: Twist, cfg: ShieldConfig, limits: LimitsConfig, ts: np.ndarray
-                 ) -> np.ndarray:
-    """(N, 2) where the robot is at times ts if the shield brakes now (its fallback), standing
-    where it stops."""
+def braking_rollout(state: Twist, cfg: ShieldConfig, limits: LimitsConfig
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Times (N,) and positions (N, 2) of the robot if the shield brakes now (its fallback);
+    it stands where it stops."""
     rt, rpose, *_ = rollout(brake_command(state, cfg, limits), state, cfg, limits)
-    return np.stack([np.interp(ts, rt, rpose[:, 0]), np.interp(ts, rt, rpose[:, 1])], axis=1)
+    return rt, rpose[:, :2]
 
 
 def brake_command(state: Twist, cfg: ShieldConfig, limits: LimitsConfig) -> Twist:
@@ -459,10 +466,11 @@ def shield(cmd: Twist, state: Twist, candidates: np.ndarray, costs: np.ndarray |
     candidate search stops when the slowest certificate so far would end past `deadline`
     (braking needs no search, so the answer is always in time)."""
     wa = _arrays(world)
+    braking = braking_rollout(state, cfg, limits)
     t_last = now() if now is not None else 0.0
-    cert = certify(cmd, state, world, cfg, limits, wa)
+    cert = certify(cmd, state, world, cfg, limits, wa, braking)
     if cert.ok:
-        return ShieldDecision(cmd, False, None, cert)
+        return ShieldDecision(cmd, "passed", None, cert)
     cand = np.asarray(candidates, dtype=float).reshape(-1, 2)
     out_of_time = False
     if len(cand) and cfg.max_candidates > 0 and cmd.is_finite():
@@ -483,17 +491,18 @@ def shield(cmd: Twist, state: Twist, candidates: np.ndarray, costs: np.ndarray |
             if not np.all(np.isfinite(cand[i])):
                 continue
             tw = Twist(float(cand[i, 0]), float(cand[i, 1]))
-            ci = certify(tw, state, world, cfg, limits, wa)
+            ci = certify(tw, state, world, cfg, limits, wa, braking)
             if ci.ok:
-                return ShieldDecision(tw, True, f"replaced by candidate {int(i)}: {cert.reason}", ci)
+                return ShieldDecision(tw, "replaced",
+                                      f"replaced by candidate {int(i)}: {cert.reason}", ci)
     why = "out of time for candidates" if out_of_time else "no certified candidate"
     if cmd.is_finite() and cmd.omega != 0.0:
         # the planner's turn without its translation: where every candidate drives on into
         # something (the nearest max_candidates are alike), turning is often still free
         turn = Twist(0.0, cmd.omega)
-        ct = certify(turn, state, world, cfg, limits, wa)
+        ct = certify(turn, state, world, cfg, limits, wa, braking)
         if ct.ok:
-            return ShieldDecision(turn, True, f"turning in place, {why}: {cert.reason}", ct)
+            return ShieldDecision(turn, "turned", f"turning in place, {why}: {cert.reason}", ct)
     br = brake_command(state, cfg, limits)
-    cb = certify(br, state, world, cfg, limits, wa)
-    return ShieldDecision(br, True, f"braking, {why}: {cert.reason}", cb)
+    cb = certify(br, state, world, cfg, limits, wa, braking)
+    return ShieldDecision(br, "braked", f"braking, {why}: {cert.reason}", cb)

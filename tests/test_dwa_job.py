@@ -8,8 +8,11 @@ import numpy as np
 import pytest
 
 from runtime.cli import main
-from runtime.planning_step import predict_tracks_base
+from runtime.config import load_config
+from runtime.planning_step import ARRIVAL_RADIUS_M, PlanningStep, predict_tracks_base
 from runtime.tracking import Track
+from runtime.types import Odometry
+from runtime.world_model import WorldState
 
 
 def track(tid: int, pos, vel, confirmed=True, pos_var=0.01, vel_var=0.04) -> Track:
@@ -36,3 +39,21 @@ def test_dwa_planner_needs_a_goal_and_depth(capsys):
     assert main(["run", "--planner", "dwa", "--goal", "1", "0"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "depth.source" in err[0]
+
+
+def empty_world() -> WorldState:
+    angles = np.linspace(-0.75, 0.75, 90)
+    return WorldState(0.0, np.full(90, np.inf), np.zeros(90, bool), angles, np.zeros((0, 2)),
+                      [], True)
+
+
+def test_dwa_heads_for_the_planning_goal_but_arrival_is_judged_on_the_goal():
+    step = PlanningStep((3.0, 0.0), load_config(None, []).config, None, "DWA")
+    here = Odometry(x=1.0, y=0.0, theta=math.pi / 2)  # facing odom +y
+    ctx = step.prepare(0.0, here, empty_world(), plan_goal=np.array([1.0, -2.0]))
+    np.testing.assert_allclose(ctx.goal_base, [-2.0, 0.0], atol=1e-12)  # behind it
+    ctx = step.prepare(0.05, here, empty_world())
+    np.testing.assert_allclose(ctx.goal_base, [0.0, -2.0], atol=1e-12)  # the goal, to its right
+    near = Odometry(x=3.0 - 0.9 * ARRIVAL_RADIUS_M, v=0.0)
+    assert step.prepare(0.1, near, empty_world(), plan_goal=np.array([9.0, 9.0])) is None
+    assert step.reached and step.finished
