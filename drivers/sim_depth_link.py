@@ -148,8 +148,8 @@ class SimDepthSource:
 
     def _read_frames(self, sock: socket.socket) -> None:
         while not self._closing.is_set():
-            number, t, intrinsics, payload_len, crc = decode_header(_recv_exact(sock, HEADER.size))
-            payload = _recv_exact(sock, payload_len)
+            number, t, intrinsics, payload_len, crc = decode_header(recv_exact(sock, HEADER.size))
+            payload = recv_exact(sock, payload_len)
             if zlib.crc32(payload) != crc:
                 raise LinkFormatError(f"frame {number}: payload checksum mismatch")
             depth = np.frombuffer(payload, dtype="<u2").reshape(intrinsics.height, intrinsics.width)
@@ -161,7 +161,8 @@ class SimDepthSource:
             self.digest = frame_digest(self.digest, number, crc)
 
 
-def _recv_exact(sock: socket.socket, n: int) -> bytearray:
+def recv_exact(sock: socket.socket, n: int) -> bytearray:
+    """Exactly n bytes from a stream socket; EOFError when the peer closes first."""
     buf = bytearray(n)
     view = memoryview(buf)
     got = 0

@@ -1,13 +1,16 @@
 """Wiring for one run: open the base link, run the loop with a job, always leave the base stopped.
 
 The one place that turns signals into a loop stop, and that guarantees the stop frame on every
-way out (job done, SIGTERM/SIGINT, fault, exception).
+way out (job done, a signal Python can handle, fault, exception).
 """
 
 from __future__ import annotations
 
+import faulthandler
 import logging
+import os
 import signal
+import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
@@ -21,21 +24,51 @@ from runtime.sdnotify import SystemdNotifier
 log = logging.getLogger("safemove")
 
 
+# Signals that end a run: each stops the base first. TERM and INT are requests to stop (exit 0);
+# the others end the process by the same signal once the base is stopped, so systemd sees what
+# happened: ABRT is what its watchdog sends (WatchdogSignal= default), HUP a closed terminal.
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
+FATAL_SIGNALS = (signal.SIGHUP, signal.SIGQUIT, signal.SIGUSR1, signal.SIGUSR2, signal.SIGABRT)
+_fatal: list[signal.Signals] = []
+
+
 @contextmanager
 def on_stop_signals(stop: Callable[[str], None]) -> Iterator[None]:
-    """While inside, SIGTERM and SIGINT call `stop(signal name)` instead of killing the process
-    (whoever runs the robot then stops the base on its way out); the old handlers come back
-    after."""
+    """While inside, the stop and fatal signals call `stop(signal name)` instead of killing the
+    process (whoever runs the robot then stops the base on its way out); the old handlers come
+    back after. A fatal signal is re-raised by `exit_by_fatal_signal` once the run is over. For
+    ABRT, every thread's stack goes to stderr at once (the journal), even if the main thread is
+    stuck and never runs the handler: then the link's own command timeout stops the base."""
 
     def handler(signum: int, _frame: object) -> None:
-        stop(signal.Signals(signum).name)
+        sig = signal.Signals(signum)
+        if sig in FATAL_SIGNALS and not _fatal:
+            _fatal.append(sig)
+        log.warning("%s received: stopping the base", sig.name)
+        stop(sig.name)
 
-    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGTERM, signal.SIGINT)}
+    previous = {sig: signal.signal(sig, handler) for sig in STOP_SIGNALS + FATAL_SIGNALS}
+    enabled_here = not faulthandler.is_enabled()
+    # installed over ours: ABRT dumps the stacks to the process's own stderr, then runs `handler`
+    faulthandler.enable(file=sys.__stderr__)
     try:
         yield
     finally:
+        if enabled_here:
+            faulthandler.disable()
         for sig, old in previous.items():
             signal.signal(sig, old)
+
+
+def exit_by_fatal_signal() -> None:
+    """If a fatal signal ended the run, end the process by it (default action) now that the base
+    is stopped and the report written."""
+    if _fatal:
+        sig = _fatal[0]
+        sys.stdout.flush()
+        sys.stderr.flush()
+        signal.signal(sig, signal.SIG_DFL)
+        os.kill(os.getpid(), sig)
 
 
 def open_depth_source(cfg: DepthConfig, source: str) -> DepthSource | None:

@@ -432,10 +432,13 @@ def main(argv: list[str] | None = None) -> int:
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
     try:
-        return args.func(args)
+        code = args.func(args)
     except UserError as exc:
         print(f"safemove: error: {exc}", file=sys.stderr)
         return exc.exit_code
+    if "runtime.app" in sys.modules:  # a run that drove the base: a fatal signal ends it
+        sys.modules["runtime.app"].exit_by_fatal_signal()
+    return code
 
 
 if __name__ == "__main__":

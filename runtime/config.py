@@ -18,6 +18,7 @@ from runtime.calibration_schema import (
     OdometryCalibration,
 )
 from runtime.dwa import DWAConfig
+from runtime.errors import ConfigError
 from runtime.limits import LimitsConfig
 from runtime.obstacle_memory import ObstacleMemoryConfig
 from runtime.odometry_ekf import OdometryFilterConfig
@@ -122,6 +123,18 @@ class DepthConfig:
         0.25, "depth older than this puts the loop in DEGRADED (brake to a stop)", "s",
         min=0.02, max=5.0,
     )
+    max_future_s: float = setting(
+        0.1,
+        "a frame stamped further ahead of the host clock than this, or before the previous"
+        " frame, is dropped and counted (a sensor clock jump); if good frames stop, depth goes"
+        " stale", "s", min=0.0, max=5.0,
+    )
+    min_valid_fraction: float = setting(
+        0.05,
+        "a frame with fewer valid pixels than this fraction means the camera is blind (covered,"
+        " dazzled, saturated, or a wall inside its minimum range): DEGRADED, the robot holds"
+        " still until it sees again", min=0.0, max=1.0,
+    )
     sim_socket: str = setting("", "Unix socket of `safemove sim`'s depth link (source: sim)")
     serial: str = setting("", "D435 serial number to open; empty = the only one connected")
     width: int = setting(848, "D435 depth width", "px", choices=(424, 480, 640, 848, 1280))
@@ -200,8 +213,13 @@ def _resolve_calibration_path(config: Config, config_path: Path) -> Path:
 
 
 def load_calibration(path: Path) -> Calibration:
-    """Load and validate a calibration file."""
-    return build(Calibration, load_yaml_file(path, "calibration file"), str(path))
+    """Load and validate a calibration file. An empty one is refused: it would silently give the
+    vendor defaults, which is what a lost or truncated calibration looks like."""
+    data = load_yaml_file(path, "calibration file")
+    if data is None or data == {}:
+        raise ConfigError(f"{path}: calibration file is empty; run `safemove calibrate`, or set"
+                          " calibration_file to '' for the vendor defaults")
+    return build(Calibration, data, str(path))
 
 
 def load_config(path: Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> LoadedConfig:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import enum
 import gc
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -17,6 +18,7 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 from runtime.config import Calibration, Config
+from runtime.depth_guard import DepthGuard
 from runtime.errors import DeviceError
 from runtime.limits import apply_limits
 from runtime.odometry_ekf import OdometryEKF
@@ -55,13 +57,15 @@ class DepthInput(Protocol):
 
 @dataclass
 class DepthStats:
-    """Every depth frame the loop received: count, frame-number gaps, the latest frame's age."""
+    """Every depth frame the loop received: count, frame-number gaps, the latest frame's age,
+    and the frames the guard dropped, by reason."""
 
     frames: int = 0
     gaps: int = 0
     missing: int = 0
     last_frame_number: int | None = None
     last_t: float | None = None
+    rejected: dict[str, int] = field(default_factory=dict)
 
     def take(self, frame: DepthFrame) -> None:
         if self.last_frame_number is not None and frame.frame_number != self.last_frame_number + 1:
@@ -137,6 +141,7 @@ class LoopReport:
             "depth": None if self.depth is None else {
                 "frames": self.depth.frames, "gaps": self.depth.gaps,
                 "missing": self.depth.missing, "last_frame_number": self.depth.last_frame_number,
+                "rejected": dict(self.depth.rejected),
             },
             "transitions": [{"t": t, "from": a, "to": b} for t, a, b in self.transitions],
         }
@@ -159,6 +164,7 @@ class ControlLoop:
         self._cfg = config
         self._depth = depth
         self.depth_stats = DepthStats() if depth is not None else None
+        self._depth_guard = DepthGuard(config.depth.max_future_s)
         self.latest_depth: DepthFrame | None = None
         self._perceived: DepthFrame | None = None
         self._world_model = WorldModel(config, calibration.camera, clock)
@@ -224,9 +230,12 @@ class ControlLoop:
         """Take every frame that arrived; the newest is what the stages see."""
         if self._depth is None or self.depth_stats is None:
             return
+        now = self._clock()
         while (frame := self._depth.poll()) is not None:
             self.depth_stats.take(frame)
-            self.latest_depth = frame
+            if self._depth_guard.admit(frame, now):
+                self.latest_depth = frame
+        self.depth_stats.rejected = self._depth_guard.rejected
 
     def run(self) -> LoopReport:
         """Run to the end. Exceptions inside a cycle become FAULT (exit 1) with the stop sent by
@@ -371,7 +380,12 @@ class ControlLoop:
             return
         if verdict.ok is not None and verdict.ok != self._floor_ok:
             self._floor_ok = verdict.ok
-            if not verdict.ok:
+            if verdict.ok:
+                return
+            if math.isnan(verdict.tilt_deg):
+                log.warning("no floor plane among the %d points near the calibrated floor (a wall"
+                            " filling the view, or the camera moved?)", verdict.points)
+            else:
                 log.warning("the floor is not where the calibration puts it (tilt %.1f°, height"
                             " %.3f m): has the camera moved?", verdict.tilt_deg, verdict.height_m)
 
@@ -386,12 +400,22 @@ class ControlLoop:
             last_depth = self.latest_depth.t if self.latest_depth is not None else -float("inf")
             if now - last_depth > self._cfg.depth.max_age_s:
                 return f"depth stale ({(now - last_depth) * 1000:.0f} ms old)"
+            seen = self.world.valid_fraction if self.world is not None else 1.0
+            if seen < self._cfg.depth.min_valid_fraction:
+                return (f"depth blind ({100 * seen:.1f} % of pixels valid, fewer than"
+                        f" {100 * self._cfg.depth.min_valid_fraction:g} %)")
         return None
 
     def _log_stats(self, counters: dict[str, int], rate: RateKeeper) -> None:
+        """The periodic statistics line: per-cycle events are counted here, not logged one by
+        one (a journal rate-limits a flood and drops what matters with it)."""
         cyc = self.timings.summary("cycle")
+        shield = self._job.summary().get("shield_interventions")
+        rejected = self.depth_stats.rejected if self.depth_stats is not None else {}
         log.info(
-            "%s: %d cycles, %d missed deadlines, %d degraded; cycle p50 %.2f ms p99 %.2f ms max %.2f ms",
-            self.state.value, counters["cycles"], rate.misses, counters["degraded"],
-            cyc["p50"], cyc["p99"], cyc["max"],
+            "%s: %d cycles, %d missed deadlines, %d degraded; cycle p50 %.2f ms p99 %.2f ms"
+            " max %.2f ms%s%s", self.state.value, counters["cycles"], rate.misses,
+            counters["degraded"], cyc["p50"], cyc["p99"], cyc["max"],
+            "" if shield is None else f"; shield interventions {dict(shield) or 'none'}",
+            f"; depth frames dropped {dict(rejected)}" if rejected else "",
         )

@@ -13,8 +13,9 @@ Conventions (all base_link, REP 103: x forward, y left, z up, origin on the floo
 - range = hypot(x, y) from the base_link origin (not from the camera).
 - `scan[b]` = minimum range of obstacle points in bin b; `inf` where the bin has no obstacle point.
   `inf` alone does NOT mean free: read it together with `unknown` and `free_range`.
-- `unknown[b]` is True where the bin saw nothing usable: no valid depth at all, or a large part
-  of the pixels that must see the floor at calibration returned no depth (0). A D435 returns 0
+- `unknown[b]` is True where the bin saw nothing usable: no valid depth at all (0, nearer than
+  `min_range_m` or farther than `max_depth_m`, e.g. saturated), or a large part
+  of the pixels that must see the floor at calibration returned no valid depth. A D435 returns 0
   both for "nothing within range" and for "closer than the minimum range" (blind zone), and both
   look alike in one frame; an obstacle closer than `min_range_m` blanks the floor behind it, so
   the floor test catches it. SAFE CHOICE: consumers (planner, shield) treat an unknown bin as
@@ -91,6 +92,12 @@ class PerceptionConfig:
     min_range_m: float = setting(
         0.17, "the depth camera's minimum Z; closer is blind (unknown, never free)", "m",
         min=0.0, max=1.0,
+    )
+    max_depth_m: float = setting(
+        10.0,
+        "the depth camera's largest usable Z; farther returns (a saturated 65535 among them)"
+        " are invalid: neither obstacle nor free space",
+        "m", min=0.5, max=65.0,
     )
     scan_bins: int = setting(90, "number of bearing bins of the scan", min=1, max=2048)
     bearing_span_deg: float = setting(
@@ -232,6 +239,7 @@ class Perception:
         self._rho = rho.astype(F32)  # (h, w)
         self._unit = F32(intrinsics.depth_unit_m)
         self._zmin_sensor = F32(max(cfg.min_range_m, 1e-3))
+        self._zmax_sensor = F32(cfg.max_depth_m)
         self._tx, self._ty, self._tz = F32(tx), F32(ty), F32(tz)
 
         # bins (right to left)
@@ -307,11 +315,12 @@ class Perception:
         src = depth[::d, ::d] if d > 1 else depth
         np.multiply(src, self._unit, out=z2, casting="unsafe")
         z = self._z
-        valid = self._mask2
+        valid, mask, tmp = self._mask2, self._mask, self._mask3
         np.greater_equal(z, self._zmin_sensor, out=valid)
+        np.less_equal(z, self._zmax_sensor, out=tmp)
+        valid &= tmp
         n_valid = int(np.count_nonzero(valid))
         # height band (the lower threshold grows with range, folded into _rz_low) and validity
-        mask, tmp = self._mask, self._mask3
         np.multiply(z, self._rz_low, out=self._a)
         np.greater_equal(self._a, self._c_low, out=mask)
         np.multiply(z, self._rz, out=self._b)
@@ -355,7 +364,7 @@ class Perception:
         vcount = np.bincount(self._col_bin, weights=np.count_nonzero(valid2, axis=0),
                              minlength=n + 1)[:n]
         miss2 = tmp.reshape(h, w)
-        np.equal(z2, 0, out=miss2)
+        np.logical_not(valid2, out=miss2)  # no return, or one the camera cannot give: not floor
         miss2 &= self._expect_floor
         missing = np.bincount(self._col_bin, weights=np.count_nonzero(miss2, axis=0),
                               minlength=n + 1)[:n]
@@ -401,7 +410,7 @@ class Perception:
         hgt = self._b  # Z * rz, height = tz + hgt
         np.add(hgt, self._tz, out=self._a)
         cand = np.abs(self._a) <= F32(cfg.floor_band_m)
-        cand &= z >= self._zmin_sensor
+        cand &= valid
         idx = np.flatnonzero(cand)
         if len(idx) == 0:
             return None, math.nan, math.nan, 0

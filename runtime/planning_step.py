@@ -98,6 +98,7 @@ class PlanningStep:
         self.cycles = 0
         self.inadmissible = 0
         self.interventions: Counter[str] = Counter()
+        self._last_kind = "passed"
 
     def prepare(self, now: float, odom: Odometry, world: WorldState | None,
                 plan_goal: np.ndarray | None = None) -> PlanningContext | None:
@@ -140,8 +141,10 @@ class PlanningStep:
                           now=self._clock)
         if decision.intervened:
             self.interventions[decision.kind] += 1
-            log.info("shield %s the %s command: %s", decision.kind, self._decision,
-                     decision.reason)
+            if decision.kind != self._last_kind:  # the count is in the loop's statistics line
+                log.info("shield %s the %s command: %s", decision.kind, self._decision,
+                         decision.reason)
+        self._last_kind = decision.kind
         return decision.command
 
     def _deadline(self, budget_s: float) -> float:

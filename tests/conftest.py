@@ -7,7 +7,8 @@ import os
 import signal
 import subprocess
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from typing import Any
 
 import pytest
 
@@ -85,3 +86,33 @@ def sim(request: pytest.FixtureRequest) -> Iterator[EmulatorProcess]:
         yield proc
     finally:
         proc.close()
+
+
+# --- the fault-injection table (`pytest -m faults`) ----------------------------------------------
+
+FAULT_COLUMNS = ("fault", "expected", "observed", "to DEGRADED", "to zero command",
+                 "to standstill", "travelled")
+_fault_rows: list[tuple[str, ...]] = []
+
+
+@pytest.fixture
+def fault_table() -> Callable[..., None]:
+    """Add a row (one cell per FAULT_COLUMNS) to the table printed after the run."""
+
+    def add(*cells: str) -> None:
+        assert len(cells) == len(FAULT_COLUMNS), cells
+        _fault_rows.append(tuple(cells))
+
+    return add
+
+
+def pytest_terminal_summary(terminalreporter: Any) -> None:
+    if not _fault_rows:
+        return
+    rows = [FAULT_COLUMNS, *_fault_rows]
+    widths = [max(len(r[i]) for r in rows) for i in range(len(FAULT_COLUMNS))]
+    terminalreporter.section("fault injection: observed behaviour (times from the fault's start)")
+    for k, row in enumerate(rows):
+        terminalreporter.write_line(" | ".join(c.ljust(w) for c, w in zip(row, widths)).rstrip())
+        if k == 0:
+            terminalreporter.write_line("-+-".join("-" * w for w in widths))

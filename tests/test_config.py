@@ -331,6 +331,36 @@ def test_bad_calibration_file(tmp_path, capsys, text, fragments) -> None:
     cli_error(capsys, show(cfg), str(cal), *fragments)
 
 
+@pytest.mark.parametrize("text", ["", "# nothing here\n", "{}\n"], ids=["empty", "comment", "braces"])
+def test_empty_calibration_file_is_refused_not_read_as_vendor_defaults(tmp_path, capsys, text):
+    cal = write(tmp_path / "cal.yaml", text)
+    cfg = write(tmp_path / "robot.yaml", f"calibration_file: {cal}\n")
+    cli_error(capsys, show(cfg), f"{cal}: calibration file is empty")
+
+
+@pytest.mark.parametrize(
+    ("where", "text", "fragments"),
+    [
+        ("config", "loop:\n  control_hz: 20\n  control_hz: 10\n",
+         ["line 3: key 'control_hz' given twice (first on line 2)"]),
+        ("config", "limits:\n  v_max: 0.3\nlimits:\n  v_max: 0.5\n",
+         ["line 3: key 'limits' given twice (first on line 1)"]),
+        ("calibration", "odometry:\n  m_per_tick: 0.0003\n  m_per_tick: 0.0004\n",
+         ["line 3: key 'm_per_tick' given twice"]),
+    ],
+    ids=["config-key", "config-section", "calibration-key"],
+)
+def test_duplicate_yaml_key_is_refused_naming_file_and_lines(tmp_path, capsys, where, text,
+                                                             fragments):
+    if where == "config":
+        path = write(tmp_path / "robot.yaml", text)
+        cfg = path
+    else:
+        path = write(tmp_path / "cal.yaml", text)
+        cfg = write(tmp_path / "robot.yaml", f"calibration_file: {path}\n")
+    cli_error(capsys, show(cfg), str(path), *fragments)
+
+
 def test_relative_calibration_file_resolves_against_the_config_directory(
     tmp_path, monkeypatch, capsys
 ) -> None:
