@@ -16,11 +16,14 @@ Four kinds, told apart by their contents (never by the file name):
     its activation and the spaces from the JSON `data` file (never unpickled). The exported
     graph ends with SB3's action unscaling, so it equals `model.predict`.
 (c) **plain state_dict of an MLP actor** (e.g. `layer_1`/`layer_2`/`layer_3`), architecture
-    read off the weight shapes (`export.mlp`).
+    read off the weight shapes (`export.mlp`); bare, or in an agent dict under one of
+    `ACTOR_KEYS` (`{"actor": ..., "critic": ..., "actor_target": ...}`).
 (d) **TorchScript module** (`torch.jit.save`): TorchScript code only, no Python pickles; probed
     with the spec's input size.
-A file whose loading needs pickled Python code (e.g. `torch.save(model)`) is refused unless the
-user passes --trust-checkpoint: unpickling runs arbitrary code.
+The first bytes say which container a file is (a zip archive, a legacy torch.save pickle) before
+torch reads it, so text, random bytes and plain pickles are named as what they are. A file whose
+loading needs pickled Python code (e.g. `torch.save(model)`) is refused unless the user passes
+--trust-checkpoint: unpickling runs arbitrary code.
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ import pickle
 import re
 import struct
 import zipfile
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -48,6 +52,10 @@ FORMAT_VERSION = 1
 LOAD_ERRORS = (RuntimeError, EOFError, OSError, ValueError, AttributeError, ImportError,
                pickle.UnpicklingError, zipfile.BadZipFile, struct.error)
 SB3_ACTIVATIONS = {"ReLU": "relu", "LeakyReLU": "leaky_relu", "Tanh": "tanh"}
+# torch.save's legacy (pre-1.6) format: a pickle whose first object is this number, as LONG1
+LEGACY_MAGIC = b"\x8a\x0a" + torch.serialization.MAGIC_NUMBER.to_bytes(10, "little")
+# where agent checkpoints ({"actor": ..., "critic": ..., ...}) keep the actor's state_dict
+ACTOR_KEYS = ("actor", "actor_state_dict", "policy", "policy_state_dict")
 
 
 class CheckpointError(UserError):
@@ -78,28 +86,24 @@ def load_checkpoint(path: Path, spec: ObsSpec | None, *, trust: bool = False,
     """Load any of the four kinds as a torch module, its input size checked against the spec.
     `spec` may be None only for format (a), which carries its own."""
     src = str(path)
-    if not path.is_file():
-        raise CheckpointError(f"{src}: checkpoint not found")
-    if zipfile.is_zipfile(path):
+    is_zip = _is_zip(path, src)
+    if is_zip:
         with zipfile.ZipFile(path) as zf:
             names = zf.namelist()
             if "data" in names and "policy.pth" in names:
                 return _load_sb3(zf, src, _need(spec, src, "a stable-baselines3 model"))
         if any("/code/" in n for n in names):
             return _load_torchscript(path, src, _need(spec, src, "a TorchScript module"))
+        if not any(n == "data.pkl" or n.endswith("/data.pkl") for n in names):
+            raise CheckpointError(f"{src}: a zip archive but not a stable-baselines3 model (no"
+                                  " 'data' and 'policy.pth'), a TorchScript module or a"
+                                  f" torch.save checkpoint; it holds {_some(names) or 'nothing'}")
     try:
         obj = torch.load(path, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError as exc:
-        if not trust:
-            found = re.search(r"Unsupported global: GLOBAL ([\w.]+)", str(exc))
-            what = f" ({found.group(1)})" if found else ""
-            raise CheckpointError(
-                f"{src}: loading it needs pickled Python code{what}, which can run anything;"
-                " refused (pass --trust-checkpoint only for a file from a source you trust)"
-            ) from None
-        obj = _torch_load(path, src, weights_only=False)
     except LOAD_ERRORS as exc:
-        raise _unreadable(src, exc) from None
+        if not trust:
+            raise _refused(path, src, is_zip, exc) from None
+        obj = _load_trusted(path, src)
     if isinstance(obj, torch.nn.Module):  # only reachable with --trust-checkpoint
         need = _need(spec, src, "a pickled module")
         return LoadedActor(_probe(obj.eval(), src, need), "pickled torch module", need)
@@ -108,27 +112,124 @@ def load_checkpoint(path: Path, spec: ObsSpec | None, *, trust: bool = False,
                               " a safemove actor checkpoint, an SB3 .zip or a TorchScript module")
     if obj.get("format") == FORMAT:
         return _load_project(obj, src, spec)
-    state = {k: v for k, v in obj.items() if str(k).startswith(prefix)}
-    if prefix and not state:
-        raise CheckpointError(f"{src}: no key starts with --prefix '{prefix}'")
-    actor = mlp_from_state({k[len(prefix):]: v for k, v in state.items()}, src, activation)
+    state, where, details = _actor_state(obj, src, prefix)
+    actor = mlp_from_state(state, where, activation)
     need = _need(spec, src, "a state_dict")
     _check_inputs(actor.sizes[0], need, src)
     return LoadedActor(actor, "state_dict MLP", need,
                        {"layer_sizes": actor.sizes, "hidden_activation": activation,
-                        "output_activation": "tanh"})
+                        "output_activation": "tanh", **details})
 
 
-def _torch_load(path: Path, src: str, weights_only: bool) -> Any:
+def _is_zip(path: Path, src: str) -> bool:
+    """Whether the file is a zip archive (True) or a legacy torch.save pickle (False), told by
+    its first bytes; anything else is refused here, saying what it is, because torch's
+    unpickler answers a text file with an IndexError or KeyError and random bytes with advice to trust them."""
+    if not path.exists():
+        raise CheckpointError(f"{src}: checkpoint not found")
+    if path.is_dir():
+        raise CheckpointError(f"{src}: is a directory, not a checkpoint file")
+    if not path.is_file():
+        raise CheckpointError(f"{src}: is not a regular file (a device, pipe or socket)")
     try:
-        return torch.load(path, map_location="cpu", weights_only=weights_only)
+        with path.open("rb") as f:
+            head = f.read(64)
+    except OSError as exc:
+        raise CheckpointError(f"{src}: cannot read it ({exc.strerror or exc})") from None
+    if not head:
+        raise CheckpointError(f"{src}: is empty (0 bytes)")
+    if head.startswith(b"PK"):
+        if not zipfile.is_zipfile(path):
+            raise CheckpointError(f"{src}: starts like a zip archive (PK) but is truncated or"
+                                  " damaged")
+        return True
+    if head[0] == 0x80:  # a pickle; torch.save's legacy format begins with its magic number
+        if LEGACY_MAGIC not in head:
+            raise CheckpointError(f"{src}: a Python pickle but not a torch checkpoint (no"
+                                  " torch.save header); save the weights with torch.save")
+        return False
+    text = head.decode("utf-8", errors="replace")
+    whole = text[:-1] if len(head) == 64 else text  # reading 64 bytes may split a character
+    if all(c.isprintable() or c in "\t\r\n" for c in whole):
+        if text.startswith("version https://git-lfs"):
+            raise CheckpointError(f"{src}: a Git LFS pointer, not the checkpoint itself; fetch"
+                                  " it with git lfs pull")
+        first = text.splitlines()[0][:40] if text.strip() else ""
+        raise CheckpointError(f"{src}: not a torch checkpoint but a text file (it begins"
+                              f" {first!r})")
+    raise CheckpointError(f"{src}: not a torch checkpoint: it begins with the bytes"
+                          f" {head[:4].hex(' ')}, not a zip archive (50 4b) or a torch.save"
+                          " pickle (80)")
+
+
+def _refused(path: Path, src: str, is_zip: bool, exc: BaseException) -> CheckpointError:
+    """Why `weights_only=True` refused a torch checkpoint: pickled code, named (the one case
+    where --trust-checkpoint is the answer), or a file torch cannot read (damaged)."""
+    if is_zip:
+        try:
+            code = sorted(torch.serialization.get_unsafe_globals_in_checkpoint(path))
+        except LOAD_ERRORS:
+            code = []
+    else:  # the legacy format has no such scan; torch's message names the first global
+        code = re.findall(r"Unsupported global: GLOBAL ([\w.]+)", str(exc))
+    if code:
+        return CheckpointError(
+            f"{src}: loading it needs pickled Python code ({_some(code, 3)}), which can run"
+            " anything; refused (pass --trust-checkpoint only for a file from a source you"
+            " trust)")
+    reason = re.search(r"WeightsUnpickler error:\s*(.+)", str(exc))
+    return CheckpointError(f"{src}: a torch checkpoint that cannot be read"
+                           f" ({reason.group(1) if reason else _first_line(exc)}): damaged,"
+                           " truncated, or in a form torch's weights-only loader does not read")
+
+
+def _actor_state(obj: dict[Any, Any], src: str, prefix: str
+                 ) -> tuple[dict[str, Any], str, dict[str, str]]:
+    """The actor's weights in a loaded dict, what to call them in messages, and what the report
+    says about where they came from. A bare state_dict is the actor; an agent dict (nested
+    state dicts: actor, critic, targets, optimizers) has it under one well-known key, never a
+    guess between several; --prefix picks keys of either, nested ones joined with dots."""
+    if prefix:
+        state = {k[len(prefix):]: v for k, v in _flatten(obj).items() if k.startswith(prefix)}
+        if not state:
+            raise CheckpointError(f"{src}: no key starts with --prefix '{prefix}'")
+        return state, src, {}
+    if not any(isinstance(v, Mapping) for v in obj.values()):
+        return obj, src, {}
+    found = [k for k in ACTOR_KEYS if isinstance(obj.get(k), Mapping)]
+    if len(found) == 1:
+        return dict(obj[found[0]]), f"{src}: key '{found[0]}'", {"actor_key": found[0]}
+    raise CheckpointError(f"{src}: an agent checkpoint with the keys"
+                          f" {_some([repr(str(k)) for k in obj], 8)}; expected the"
+                          f" actor's state_dict under {'only ' if found else ''}one of"
+                          f" {', '.join(repr(k) for k in ACTOR_KEYS)} (choose with --prefix"
+                          " KEY.)")
+
+
+def _some(items: list[str], n: int = 5) -> str:
+    """The first n items for a one-line message, and how many more there are."""
+    more = f" and {len(items) - n} more" if len(items) > n else ""
+    return ", ".join(items[:n]) + more
+
+
+def _flatten(obj: Mapping[Any, Any], head: str = "") -> dict[str, Any]:
+    """Nested dicts as one, their keys joined with dots, as a module's state_dict names them."""
+    flat: dict[str, Any] = {}
+    for key, value in obj.items():
+        if isinstance(value, Mapping):
+            flat.update(_flatten(value, f"{head}{key}."))
+        else:
+            flat[f"{head}{key}"] = value
+    return flat
+
+
+def _load_trusted(path: Path, src: str) -> Any:
+    """--trust-checkpoint: unpickle everything, code included."""
+    try:
+        return torch.load(path, map_location="cpu", weights_only=False)
     except LOAD_ERRORS as exc:
-        raise _unreadable(src, exc) from None
-
-
-def _unreadable(src: str, exc: BaseException) -> CheckpointError:
-    return CheckpointError(f"{src}: not a torch checkpoint ({type(exc).__name__}:"
-                           f" {_first_line(exc)})")
+        raise CheckpointError(f"{src}: a torch checkpoint that cannot be read"
+                              f" ({type(exc).__name__}: {_first_line(exc)})") from None
 
 
 def _need(spec: ObsSpec | None, src: str, what: str) -> ObsSpec:
@@ -187,7 +288,8 @@ def _load_sb3(zf: zipfile.ZipFile, src: str, spec: ObsSpec) -> LoadedActor:
         data = json.loads(zf.read("data"))
         policy = torch.load(io.BytesIO(zf.read("policy.pth")), map_location="cpu",
                             weights_only=True)
-    except (json.JSONDecodeError, pickle.UnpicklingError, RuntimeError, KeyError) as exc:
+    except (json.JSONDecodeError, pickle.UnpicklingError, RuntimeError, KeyError,
+            zipfile.BadZipFile) as exc:
         raise CheckpointError(f"{src}: unreadable stable-baselines3 file:"
                               f" {_first_line(exc)}") from None
     module = str(data.get("policy_class", {}).get("__module__", ""))

@@ -20,7 +20,9 @@ from runtime.obs_spec import PRESETS, ObsSpec, load_spec
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("checkpoint", type=Path,
                    help="a safemove actor checkpoint, a stable-baselines3 TD3 .zip, a state_dict"
-                        " of an MLP actor, or a TorchScript module")
+                        " of an MLP actor (bare or in an agent dict under 'actor',"
+                        " 'actor_state_dict', 'policy' or 'policy_state_dict'), or a TorchScript"
+                        " module")
     p.add_argument("-o", "--output", type=Path, required=True, help="the ONNX file to write")
     p.add_argument("--spec", metavar="PRESET|FILE.json",
                    help=f"observation spec: a preset ({', '.join(PRESETS)}) or a spec JSON file;"
@@ -32,7 +34,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="hidden activation of a plain state_dict's MLP (default relu; the output"
                         " is tanh)")
     p.add_argument("--prefix", default="",
-                   help="use only the state_dict keys starting with this (e.g. actor.mu.)")
+                   help="use only the state_dict keys starting with this (e.g. actor.mu.);"
+                        " keys of nested dicts are joined with dots (e.g. actor.)")
     p.add_argument("--observations", type=Path, metavar="FILE.npy",
                    help="recorded observations (n, N) float32 for the parity check (default:"
                         " 1,000 from a lock-stepped simulated run in scenario paper_b)")
@@ -76,7 +79,9 @@ def run_export(args: argparse.Namespace, simulated: SimulatedObservations) -> di
                         " pip install -e '.[export]'") from None
     from export.checkpoint import load_checkpoint
     from export.onnx_export import export_actor
+    from export.output import check_output
 
+    check_output(args.output, args.checkpoint, args.int8)  # before the work, not after it
     spec = load_spec(args.spec) if args.spec else None
     actor = load_checkpoint(args.checkpoint, spec, trust=args.trust_checkpoint,
                             activation=args.activation, prefix=args.prefix)

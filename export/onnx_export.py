@@ -10,7 +10,8 @@ recorded ones (`sim_stub.recorded_observations` through the CLI, or the user's f
 run batch-1 as in the loop, failing above 1e-5; latency p50/p99 of batch-1 inference on the
 runtime's session settings.
 Optionally an int8 copy (onnxruntime dynamic quantization of the weights) with its parity
-and latency against fp32. Nothing is written to the output path unless every check passes.
+and latency against fp32. Nothing is written to the output path unless every check passes;
+the path is checked before the export and written atomically after it (`export.output`).
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ import onnxruntime as ort
 import torch
 
 from export.checkpoint import LoadedActor
+from export.output import check_output, int8_path, write_atomically
 from runtime.errors import UserError
 from runtime.policy import (
     INPUT_NAME,
@@ -152,7 +154,9 @@ def _max_abs(a: np.ndarray, b: np.ndarray) -> float:
 
 def export_actor(actor: LoadedActor, source: Path, output: Path, recorded: np.ndarray,
                  recorded_from: str, int8: bool = False) -> dict[str, Any]:
-    """Export, verify, write; returns the report. Raises ExportFailed (nothing written)."""
+    """Export, verify, write; returns the report. Raises ExportFailed or OutputError (nothing
+    written)."""
+    check_output(output, source, int8)
     spec = actor.spec
     model = to_onnx(actor)
     provenance = {
@@ -198,14 +202,12 @@ def export_actor(actor: LoadedActor, source: Path, output: Path, recorded: np.nd
         staged = Path(tmp) / "actor.onnx"
         staged.write_bytes(data)
         Policy(staged, PolicyConfig(warmup_runs=1))  # the runtime itself accepts it
+        files = {output: data}
         if int8:
-            int8_target = output.with_name(output.stem + ".int8.onnx")
-            report["int8"], int8_data = _int8(staged, Path(tmp), actor, session, both)
-            report["int8"]["output"] = str(int8_target)
-        output.parent.mkdir(parents=True, exist_ok=True)
-        output.write_bytes(data)
-        if int8:
-            int8_target.write_bytes(int8_data)
+            report["int8"], files[int8_path(output)] = _int8(staged, Path(tmp), actor, session,
+                                                             both)
+            report["int8"]["output"] = str(int8_path(output))
+    write_atomically(files)
     return report
 
 

@@ -2,7 +2,14 @@
 
 from __future__ import annotations
 
+import errno
+import io
 import json
+import os
+import pickle
+import subprocess
+import sys
+import zipfile
 from collections import OrderedDict
 
 import numpy as np
@@ -239,10 +246,15 @@ def test_pickled_code_is_refused_without_the_flag(tmp_path, capsys, observations
             "--observations", observations["drl"]]
     msg = refused(capsys, *args)
     assert msg == (f"safemove: error: {tmp_path / 'whole_model.pt'}: loading it needs pickled"
-                   " Python code (torch.nn.modules.container.Sequential), which can run"
-                   " anything; refused (pass --trust-checkpoint only for a file from a source"
-                   " you trust)")
+                   " Python code (torch.nn.modules.activation.ReLU,"
+                   " torch.nn.modules.activation.Tanh, torch.nn.modules.container.Sequential and"
+                   " 1 more), which can run anything; refused (pass --trust-checkpoint only for a"
+                   " file from a source you trust)")
     assert not (tmp_path / "m.onnx").exists()
+    torch.save(net, tmp_path / "legacy.pt", _use_new_zipfile_serialization=False)
+    msg = refused(capsys, str(tmp_path / "legacy.pt"), *args[1:])
+    assert "legacy.pt: loading it needs pickled Python code (torch.nn.modules.container" in msg
+    assert "--trust-checkpoint" in msg
     code, report, err = export(capsys, *args, "--trust-checkpoint")
     assert code == 0, err
     assert report["checkpoint_kind"] == "pickled torch module"
@@ -294,3 +306,213 @@ def test_bench_policy_reports_onnxruntime_and_torch_in_one_run(capsys):
     for figures in result["actors"].values():
         for engine in ("onnxruntime_us", "torch_eager_us"):
             assert 0 < figures[engine]["p50"] <= figures[engine]["p99"]
+
+
+# --- files that are not checkpoints, agent checkpoints, output paths (issue 12, item 10) ---------
+
+
+def legacy_state_dict_bytes() -> bytes:
+    """A state_dict in torch.save's legacy (pre-1.6) format: a pickle stream, no zip."""
+    buf = io.BytesIO()
+    torch.save(td3_nav_state_dict(DRL.size, hidden=(8, 4)), buf,
+               _use_new_zipfile_serialization=False)
+    return buf.getvalue()
+
+
+def zip_bytes(**entries: str) -> bytes:
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as zf:
+        for name, text in entries.items():
+            zf.writestr(name, text)
+    return buf.getvalue()
+
+
+def torch_zip_bytes() -> bytes:
+    buf = io.BytesIO()
+    torch.save(td3_nav_state_dict(DRL.size, hidden=(8, 4)), buf)
+    return buf.getvalue()
+
+
+NOT_CHECKPOINTS = {  # file contents -> what the one line must say after the file's name
+    "text": (b"hello world\nthis is a text file\n",
+             ": not a torch checkpoint but a text file (it begins 'hello world')"),
+    "random bytes": (b"\x17" + np.random.default_rng(0).bytes(4095),
+                     ": not a torch checkpoint: it begins with the bytes 17 "),
+    "empty": (b"", ": is empty (0 bytes)"),
+    "plain pickle": (pickle.dumps({"layer_1.weight": [[0.0]]}, protocol=2),
+                     ": a Python pickle but not a torch checkpoint (no torch.save header)"),
+    "git lfs pointer": (b"version https://git-lfs.github.com/spec/v1\noid sha256:00\nsize 9\n",
+                        ": a Git LFS pointer, not the checkpoint itself"),
+    "other zip": (zip_bytes(**{"data": "{}", "readme.txt": "x"}),
+                  (": a zip archive but not a stable-baselines3 model (no 'data' and"
+                   " 'policy.pth'), a TorchScript module or a torch.save checkpoint; it holds"
+                   " data, readme.txt")),
+    "truncated zip": (torch_zip_bytes()[:600],
+                      ": starts like a zip archive (PK) but is truncated or damaged"),
+    "truncated legacy": (legacy_state_dict_bytes()[:-40],
+                         ": a torch checkpoint that cannot be read (unexpected EOF"),
+}
+
+
+@pytest.mark.parametrize("kind", NOT_CHECKPOINTS)
+def test_a_file_that_is_not_a_checkpoint_is_named_as_what_it_is(kind, tmp_path, capsys):
+    """One line naming the file and what it is; never advice to trust it (it holds no code)."""
+    content, says = NOT_CHECKPOINTS[kind]
+    ckpt = tmp_path / "actor.pt"
+    ckpt.write_bytes(content)
+    msg = refused(capsys, str(ckpt), "-o", str(tmp_path / "x.onnx"), "--spec", "drl")
+    assert msg.startswith(f"safemove: error: {ckpt}{says}"), msg
+    assert "trust" not in msg
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["actor.pt"]
+
+
+def test_a_directory_as_the_checkpoint_is_refused(tmp_path, capsys):
+    msg = refused(capsys, str(tmp_path), "-o", str(tmp_path / "x.onnx"), "--spec", "drl")
+    assert msg == f"safemove: error: {tmp_path}: is a directory, not a checkpoint file"
+
+
+def test_the_real_process_answers_bad_files_with_one_line(tmp_path, observations):
+    """`safemove export` as a user runs it: a text file as the checkpoint, /dev/full as the
+    output; exit 2, one stderr line, no traceback, nothing written."""
+    text = tmp_path / "notes.pt"
+    text.write_text("these are not weights\n")
+    torch.save(td3_nav_state_dict(DRL.size, hidden=(8, 4)), tmp_path / "a.pth")
+    cases = [([str(text), "-o", str(tmp_path / "x.onnx")],
+              f"{text}: not a torch checkpoint but a text file"),
+             ([str(tmp_path / "a.pth"), "-o", "/dev/full", "--observations",
+               observations["drl"]], "/dev/full: exists and is not a regular file")]
+    for args, says in cases:
+        proc = subprocess.run([sys.executable, "-m", "runtime.cli", "export", *args, "--spec",
+                               "drl"], capture_output=True, text=True, timeout=300, check=False)
+        lines = proc.stderr.strip().splitlines()
+        assert proc.returncode == 2 and len(lines) == 1, proc.stderr
+        assert lines[0].startswith(f"safemove: error: {says}"), lines
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.pth", "notes.pt"]
+
+
+AGENT_LAYOUTS = {  # how training scripts save a TD3 agent: the actor's key, the rest
+    "actor": ("actor_target", "critic", "critic_target"),
+    "actor_state_dict": ("critic_state_dict", "actor_optimizer_state_dict"),
+    "policy": ("value_net",),
+}
+
+
+@pytest.mark.parametrize("key", AGENT_LAYOUTS)
+def test_an_agent_checkpoint_exports_its_actor(key, tmp_path, capsys, observations):
+    sd = td3_nav_state_dict(DRL.size, seed=5, hidden=(64, 32))
+    agent: dict = {key: sd, "total_it": 1200}
+    for k, other in enumerate(AGENT_LAYOUTS[key]):
+        if other.endswith("optimizer_state_dict"):
+            params = [torch.nn.Parameter(v.clone()) for v in sd.values()]
+            agent[other] = torch.optim.Adam(params).state_dict()
+        else:  # a critic takes state and action; a target is another actor
+            agent[other] = td3_nav_state_dict(DRL.size + 2 * ("critic" in other), seed=k)
+    torch.save(agent, tmp_path / "agent.pth")
+    out = tmp_path / "agent.onnx"
+    code, report, err = export(capsys, str(tmp_path / "agent.pth"), "-o", str(out), "--spec",
+                               "drl", "--observations", observations["drl"])
+    assert code == 0, err
+    assert report["details"]["actor_key"] == key
+    assert report["details"]["layer_sizes"] == [25, 64, 32, 2]
+    assert max(report["parity"][k]["max_abs"] for k in ("random", "recorded")) <= 1e-5
+    obs = np.load(observations["drl"])[:50]
+    policy = Policy(out, PolicyConfig(warmup_runs=1))
+    np.testing.assert_allclose([policy.act(o) for o in obs], td3_nav_reference(sd, obs),
+                               atol=1e-5)
+
+
+def test_an_agent_checkpoint_without_one_actor_key_is_refused_naming_its_keys(tmp_path, capsys,
+                                                                              observations):
+    sd = td3_nav_state_dict(DRL.size, hidden=(16, 8))
+    torch.save({"net": sd, "critic": td3_nav_state_dict(27)}, tmp_path / "unknown.pth")
+    msg = refused(capsys, str(tmp_path / "unknown.pth"), "-o", str(tmp_path / "x.onnx"),
+                  "--spec", "drl")
+    assert msg == (f"safemove: error: {tmp_path / 'unknown.pth'}: an agent checkpoint with the"
+                   " keys 'net', 'critic'; expected the actor's state_dict under one of 'actor',"
+                   " 'actor_state_dict', 'policy', 'policy_state_dict' (choose with --prefix"
+                   " KEY.)")
+    torch.save({"actor": sd, "policy": sd}, tmp_path / "both.pth")
+    msg = refused(capsys, str(tmp_path / "both.pth"), "-o", str(tmp_path / "x.onnx"),
+                  "--spec", "drl")
+    assert "with the keys 'actor', 'policy'; expected the actor's state_dict under only one" in msg
+    assert not (tmp_path / "x.onnx").exists()
+    code, report, err = export(capsys, str(tmp_path / "unknown.pth"), "-o",
+                               str(tmp_path / "x.onnx"), "--spec", "drl", "--prefix", "net.",
+                               "--observations", observations["drl"])
+    assert code == 0, err
+    assert report["details"]["layer_sizes"] == [25, 16, 8, 2]
+
+
+@pytest.fixture
+def no_export(monkeypatch):
+    """Fails the test if the export itself starts: a bad output must be refused before it."""
+    import export.onnx_export as ox
+
+    def ran(*_: object) -> None:
+        raise AssertionError("the export ran before the output path was checked")
+
+    monkeypatch.setattr(ox, "to_onnx", ran)
+
+
+def test_an_output_path_that_cannot_be_written_is_refused_before_the_export(tmp_path, capsys,
+                                                                            no_export):
+    ckpt = tmp_path / "a.pth"
+    torch.save(td3_nav_state_dict(DRL.size, hidden=(8, 4)), ckpt)
+    (tmp_path / "dir.onnx").mkdir()
+    (tmp_path / "file").write_text("")
+    (tmp_path / "b.int8.onnx").mkdir()
+    cases = {
+        str(tmp_path / "dir.onnx"): "is a directory, not a file name for the ONNX model",
+        str(tmp_path / "missing" / "a.onnx"): f"the directory {tmp_path / 'missing'} does not"
+                                              " exist",
+        str(tmp_path / "file" / "a.onnx"): f"the directory {tmp_path / 'file'} is not a"
+                                           " directory",
+        str(ckpt): "is the checkpoint itself; writing would destroy it",
+        "/dev/full": "exists and is not a regular file (a device, pipe or socket)",
+    }
+    for output, says in cases.items():
+        msg = refused(capsys, str(ckpt), "-o", output, "--spec", "drl")
+        assert msg.startswith(f"safemove: error: {output}: {says}"), msg
+    msg = refused(capsys, str(ckpt), "-o", str(tmp_path / "b.onnx"), "--spec", "drl", "--int8")
+    assert msg.startswith(f"safemove: error: {tmp_path / 'b.int8.onnx'}: is a directory"), msg
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.pth", "b.int8.onnx", "dir.onnx",
+                                                          "file"]
+
+
+def test_a_read_only_directory_is_refused_before_the_export(tmp_path, capsys, no_export):
+    ckpt = tmp_path / "a.pth"
+    torch.save(td3_nav_state_dict(DRL.size, hidden=(8, 4)), ckpt)
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o555)
+    try:
+        if os.access(ro, os.W_OK):
+            pytest.skip("running as root: a read-only mode does not stop writes")
+        msg = refused(capsys, str(ckpt), "-o", str(ro / "a.onnx"), "--spec", "drl")
+        assert msg == f"safemove: error: {ro / 'a.onnx'}: the directory {ro} is not writable"
+    finally:
+        ro.chmod(0o755)
+
+
+def test_a_full_disk_at_the_end_writes_nothing_and_keeps_the_old_model(tmp_path, capsys,
+                                                                       observations,
+                                                                       monkeypatch):
+    """The disk fills while the int8 copy is written (the second file; an 8 KiB tmpfs gives the
+    same line): one line, exit 2, the previous model untouched, no temporary file left."""
+    torch.save(td3_nav_state_dict(DRL.size, hidden=(16, 8)), tmp_path / "a.pth")
+    (tmp_path / "a.onnx").write_bytes(b"the previous model")
+    real_fsync, calls = os.fsync, []
+
+    def fsync(fd: int) -> None:
+        calls.append(fd)
+        if len(calls) == 2:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        real_fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    msg = refused(capsys, str(tmp_path / "a.pth"), "-o", str(tmp_path / "a.onnx"), "--spec",
+                  "drl", "--observations", observations["drl"], "--int8")
+    assert msg == (f"safemove: error: {tmp_path / 'a.int8.onnx'}: writing it failed (No space"
+                   " left on device); nothing was written")
+    assert (tmp_path / "a.onnx").read_bytes() == b"the previous model"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.onnx", "a.pth"]
