@@ -18,7 +18,7 @@ K = DepthIntrinsics(4, 3, 2.0, 2.0, 2.0, 1.5)
 
 
 def frame(n: int, t: float) -> DepthFrame:
-    return DepthFrame(np.zeros((3, 4), np.uint16), t, n, K)
+    return DepthFrame(np.full((3, 4), 1000, np.uint16), t, n, K)  # 1 m: a camera that sees
 
 
 def test_depth_stats_count_gaps_and_missing_frames():
