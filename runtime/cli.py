@@ -181,6 +181,12 @@ def cmd_bench_policy(args: argparse.Namespace) -> int:
     return _print_bench(bench_policy(args.runs), args.json)
 
 
+def cmd_bench_startup(args: argparse.Namespace) -> int:
+    from sim_stub.startup_bench import bench_startup
+
+    return _print_bench(bench_startup(args.runs, args.planner, args.model), args.json)
+
+
 def cmd_train(args: argparse.Namespace) -> int:
     from train.cli import run_train
 
@@ -221,6 +227,13 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if not args.json:
         print(table(result), file=sys.stderr)
     _print_json(result)
+    return 0
+
+
+def cmd_soak(args: argparse.Namespace) -> int:
+    from sim_stub.soak import soak
+
+    _print_json(soak(args))
     return 0
 
 
@@ -305,6 +318,26 @@ def build_parser() -> argparse.ArgumentParser:
                    help="whether the people see the robot (default reactive)")
     p.set_defaults(func=cmd_demo)
 
+    p = sub.add_parser("soak", help="a long real-time run of `safemove run` against `safemove"
+                                     " sim`: contacts, interventions, misses, RSS slope, log rate")
+    p.add_argument("scenario", help="shipped scenario name or scenario file")
+    p.add_argument("--minutes", type=finite_float, default=10.0, help="real-time minutes RUNNING")
+    p.add_argument("--planner", choices=("dwa", "safemove"), default="dwa")
+    p.add_argument("--model", type=Path, help="the actor for --planner safemove")
+    p.add_argument("--seed", type=int, default=3)
+    p.add_argument("--crowd", choices=("scenario", "reactive", "oblivious"), default="scenario")
+    p.add_argument("--fps", type=finite_float, default=15.0, help="depth frames per second")
+    p.add_argument("--goal-world", nargs=2, type=finite_float, metavar=("X", "Y"),
+                   help="goal in the world frame (default: the scenario's); inside an obstacle"
+                        " it is unreachable and the robot keeps manoeuvring")
+    p.add_argument("--rss-every", type=finite_float, default=10.0, help="seconds between RSS samples")
+    p.add_argument("--warmup-s", type=finite_float, default=120.0,
+                   help="RSS samples before this are left out of the slope")
+    p.add_argument("--log", help="keep the runtime's stderr in this file")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="config override for the runtime (repeatable)")
+    p.set_defaults(func=cmd_soak)
+
     p = sub.add_parser("config", help="inspect the configuration")
     csub = p.add_subparsers(dest="config_command", required=True, metavar="ACTION")
     cp = csub.add_parser("show", help="validate and print the effective config and calibration")
@@ -341,6 +374,11 @@ def build_parser() -> argparse.ArgumentParser:
                        cmd_bench_policy)
     bp.add_argument("--runs", type=int_at_least(100), default=5000,
                     help="timed inferences per engine and actor (default 5000)")
+    bp = _bench_parser(bsub, "startup", "time from process start to READY=1 and RSS at READY,"
+                       " against `safemove sim`", cmd_bench_startup)
+    bp.add_argument("--runs", type=int_at_least(1), default=5, help="starts (default 5)")
+    bp.add_argument("--planner", choices=("hold", "dwa", "safemove"), default="safemove")
+    bp.add_argument("--model", type=Path, metavar="FILE.onnx", help="the actor for safemove")
 
     p = sub.add_parser("export", help="torch checkpoint -> ONNX actor with its spec, verified")
     from export.cli import add_arguments as add_export_arguments

@@ -104,10 +104,24 @@ class BaseConfig:
         2.0, "longest wait between reopen attempts (exponential backoff)", "s", min=0.1, max=60.0
     )
     glitch_ticks: int = setting(
-        1000, "a per-frame encoder jump this large is rejected as a glitch", "ticks", min=10
+        20,
+        "an encoder delta this far beyond what the wheel can travel in the frame's base-clock"
+        " time (1.5 × max_wheel_speed_m_s) is a glitch: the frame is rejected (slack for count"
+        " quantisation and jitter)",
+        "ticks",
+        min=10,
     )
     max_wheel_speed_m_s: float = setting(
         0.5, "per-wheel speed limit of the firmware (±500 mm/s)", "m/s", min=0.05, max=0.5
+    )
+    flag_debounce_frames: int = setting(
+        2,
+        "cliff and wheel-drop flags count only when this many accepted feedback frames in a row"
+        " agree (set or clear), so one corrupted frame cannot stop or release the robot; each"
+        " frame beyond the first adds one feedback period of latency (20 ms at 50 Hz)",
+        "frames",
+        min=1,
+        max=10,
     )
 
 
@@ -130,7 +144,7 @@ class DepthConfig:
         " stale", "s", min=0.0, max=5.0,
     )
     min_valid_fraction: float = setting(
-        0.05,
+        0.02,
         "a frame with fewer valid pixels than this fraction means the camera is blind (covered,"
         " dazzled, saturated, or a wall inside its minimum range): DEGRADED, the robot holds"
         " still until it sees again", min=0.0, max=1.0,
