@@ -18,9 +18,14 @@ Obstacle model (what must stay clear, exactly):
       ±approach_half_angle of the direction of travel, at distance >= R + untracked_approach·t
       (p may be a person the tracker has not confirmed, walking in: the robot must stand still
       before they could reach it, or it would have driven into them).
-  (b) tracks: track i's centre moves piecewise linearly through `track_positions[i, k]` at times
-      k·track_dt (beyond the last given time it continues with its last segment's velocity), its
-      std likewise; the centre must stay at distance >= R + radius_i + k_sigma·std_i(t).
+  (b) tracks: track i's predicted centre moves piecewise linearly through `track_positions[i, k]`
+      at times k·track_dt (beyond the last given time it continues with its last segment's
+      velocity), its std likewise. A person may stop at any moment (one walking away can turn
+      round or stand still), so at time t the centre may be anywhere on the segment from where
+      it is now (k = 0) to where it is predicted at t (exact for the constant-velocity
+      predictions the planner makes); the robot must stay at distance >= R + radius_i +
+      k_sigma·std_i(t) from that whole segment. A person walking away from the robot therefore
+      buys it no room: it keeps its distance from where they are now.
   (c) unseen space: while the robot translates (v != 0), its LEAD POINTS — the footprint boundary
       points at angles within ±lead_half_angle of the direction of travel (heading, or heading+π
       when reversing), `lead_rays` of them — must lie inside the current footprint disc
@@ -261,6 +266,19 @@ def _track_at(wa: _WorldArrays, track_dt: float, ts: np.ndarray) -> tuple[np.nda
     return pos, np.maximum(std, 0.0)
 
 
+def _swept_distance(c: np.ndarray, p0: np.ndarray, pt: np.ndarray) -> np.ndarray:
+    """(T, N) distance from the robot's centre c (N, 2) to the segment from where each track is
+    now, p0 (T, 1, 2), to where it is predicted at that time, pt (T, N, 2): a person may stop
+    anywhere along the way, so the robot may not bank on them walking on out of its path."""
+    seg = pt - p0
+    rel = c[None, :, :] - p0
+    along = np.einsum("tnk,tnk->tn", rel, seg) / np.maximum(np.einsum("tnk,tnk->tn", seg, seg),
+                                                           1e-18)
+    np.clip(along, 0.0, 1.0, out=along)
+    d = rel - along[..., None] * seg
+    return np.hypot(d[..., 0], d[..., 1])
+
+
 def _bin_geometry(world: ShieldWorld) -> tuple[float, float]:
     ang = np.asarray(world.bin_angles, dtype=float)
     if world.bin_width > 0:
@@ -390,12 +408,11 @@ def certify(cmd: Twist, state: Twist, world: ShieldWorld, cfg: ShieldConfig,
     if nt:
         tp, ts_std = _track_at(wa, world.track_dt, ts)
         slack_t = 0.5 * (vmax + wa.track_speed + cfg.k_sigma * wa.std_rate) * h + 1e-9
-        dist = np.hypot(c[None, :, 0] - tp[..., 0], c[None, :, 1] - tp[..., 1])
-        gap = dist - (R + wa.radii + cfg.k_sigma * ts_std)  # (T, N)
+        p0 = wa.tracks[:, :1, :]  # where each track is now
+        gap = _swept_distance(c, p0, tp) - (R + wa.radii + cfg.k_sigma * ts_std)  # (T, N)
         # where a track would overlap the footprint of the robot braking now, it may come no
         # closer than that (see module docs)
-        braking = (np.hypot(ref[None, :, 0] - tp[..., 0], ref[None, :, 1] - tp[..., 1])
-                   - (R + wa.radii + cfg.k_sigma * ts_std))
+        braking = _swept_distance(ref, p0, tp) - (R + wa.radii + cfg.k_sigma * ts_std)
         floor = np.minimum(braking - slack_t - tol_ref, 0.0)
         marg = gap - slack_t - floor
         a, k = np.unravel_index(int(np.argmin(marg)), marg.shape)

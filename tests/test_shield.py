@@ -103,8 +103,11 @@ def violates(cmd: Twist, state: Twist, w: ShieldWorld, cfg=CFG, lim=LIM, h=2e-4)
         py = np.interp(T, k, w.track_positions[i, :, 1])
         sd = np.interp(T, k, w.track_std[i])
         reach = R + w.track_radii[i] + cfg.k_sigma * sd
-        gap = np.hypot(X - px, Y - py) - reach
-        ref = np.hypot(B[:, 0] - px, B[:, 1] - py) - reach
+        # the person may have stopped anywhere between where they are now and where they are
+        # predicted at T (random_world's tracks walk at constant velocity: a straight segment)
+        start = w.track_positions[i, 0]
+        gap = _to_segment(C, start, np.stack([px, py], 1)) - reach
+        ref = _to_segment(B, start, np.stack([px, py], 1)) - reach
         need = np.where(ref < tol_track, np.minimum(ref, 0.0) - tol_track, 0.0)
         if np.any(gap < need - 1e-7):
             return "track"
@@ -126,6 +129,13 @@ def violates(cmd: Twist, state: Twist, w: ShieldWorld, cfg=CFG, lim=LIM, h=2e-4)
             if w.unknown[b] or r >= w.scan[b]:
                 return "unseen"
     return None
+
+
+def _to_segment(q: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distance from each q[j] to the segment a → b[j]."""
+    ab = b - a
+    u = np.clip(((q - a) * ab).sum(1) / np.maximum((ab * ab).sum(1), 1e-18), 0.0, 1.0)
+    return np.linalg.norm(q - (a + u[:, None] * ab), axis=1)
 
 
 TRACK_SPEED_MAX = 1.5 * math.sqrt(2.0)  # random_world's fastest track
@@ -335,3 +345,25 @@ def test_untracked_points_ahead_are_kept_at_a_distance_a_walking_person_could_cl
     assert certify(Twist(0.1, 0.0), Twist(0.1, 0.0), side, cfg, LIM).ok
     far, scan = wall_at(0.60)
     assert certify(slow, slow, world(far, scan=scan), cfg, LIM).ok
+
+
+def test_a_person_walking_away_may_stop_so_the_robot_keeps_its_distance_from_where_they_are():
+    """Following a person who walks away at 1 m/s, 6 cm beyond contact: banking on them walking
+    on would certify full speed; if they stop, the robot at 0.3 m/s needs ~8 cm to stand."""
+    R = CFG.robot_radius + CFG.margin
+    radius = 0.25
+    x0 = R + radius + 0.06
+    steps = 30
+    tk = np.arange(steps) * 0.1
+    away = np.stack([x0 + 1.0 * tk, np.zeros(steps)], 1)[None]
+    w = world(tracks=away, std=np.zeros((1, steps)), radii=np.array([radius]))
+    cert = certify(Twist(0.3, 0.0), Twist(0.3, 0.0), w, CFG, LIM)
+    assert not cert.ok and "track 0" in cert.reason
+    # with room to stop short of where they are now, following is fine
+    far = world(tracks=away + np.array([0.25, 0.0]), std=np.zeros((1, steps)),
+                radii=np.array([radius]))
+    assert certify(Twist(0.3, 0.0), Twist(0.3, 0.0), far, CFG, LIM).ok
+    # and a person walking away beside the robot's path does not stop it
+    beside = world(tracks=away + np.array([0.0, 0.7]), std=np.zeros((1, steps)),
+                   radii=np.array([radius]))
+    assert certify(Twist(0.3, 0.0), Twist(0.3, 0.0), beside, CFG, LIM).ok
