@@ -22,6 +22,7 @@ from runtime.depth_guard import DepthGuard
 from runtime.errors import DeviceError
 from runtime.limits import apply_limits
 from runtime.odometry_ekf import OdometryEKF
+from runtime.pose_history import PoseHistory
 from runtime.sdnotify import SystemdNotifier
 from runtime.timing import RateKeeper, RingStats
 from runtime.types import STOP, DepthFrame, Odometry, Twist, WheelIncrement
@@ -171,6 +172,7 @@ class ControlLoop:
         self.world: WorldState | None = None
         self._floor_ok: bool | None = None
         self._odom_filter = OdometryEKF(calibration.odometry.axle_length_m, config.odometry)
+        self._poses = PoseHistory()
         self._link = link
         self._job = job
         self._notifier = notifier
@@ -307,6 +309,7 @@ class ControlLoop:
             t1 = t_depth
             for inc in increments:
                 odom = self._odom_filter.step(inc)
+                self._poses.add(odom)
                 hazard = inc.hazard if cfg.loop.stop_on_cliff else None  # the latest frame decides
             self.odometry = odom
             t2 = clock()
@@ -366,9 +369,9 @@ class ControlLoop:
 
     def _update_world(self, frame: DepthFrame, odom: Odometry) -> None:
         """The world model on the newest frame (older undrained ones are only counted: a planner
-        wants the present, not a backlog)."""
+        wants the present, not a backlog), placed from where the robot was at its stamp."""
         self._perceived = frame
-        self.world = self._world_model.update(frame, odom)
+        self.world = self._world_model.update(frame, odom, self._poses.at(frame.t, odom))
         for stage, seconds in self._world_model.stage_s.items():
             self.timings.record(self._ch[stage], seconds)
 

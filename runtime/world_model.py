@@ -50,21 +50,24 @@ class WorldModel:
         self._tracker = Tracker(config.tracking)
         self.stage_s = {"perception": 0.0, "memory": 0.0, "tracking": 0.0}
 
-    def update(self, frame: DepthFrame, odom: Odometry) -> WorldState:
-        """The world after `frame` seen from `odom`'s pose. The tracker clusters the frame's
-        points as the memory binned them, one per cell."""
+    def update(self, frame: DepthFrame, odom: Odometry,
+               seen_from: Odometry | None = None) -> WorldState:
+        """The world after `frame`, in base_link at `odom`'s pose. `seen_from`: where the robot
+        was at the frame's stamp (default `odom`), which places the frame's points in odom.
+        The tracker clusters the frame's points as the memory binned them, one per cell."""
         clock = self._clock
         if self._perception is None or self._perception.intrinsics != frame.intrinsics:
             self._perception = Perception(frame.intrinsics, self._mount, self._cfg.perception)
         t0 = clock()
         out = self._perception.process(frame.depth)
         t1 = clock()
-        pose = (odom.x, odom.y, odom.theta)
-        self._memory.update_from(out, pose, frame.t, view=self._perception.view)
-        remembered = self._memory.points_base(pose, frame.t)
+        at = seen_from if seen_from is not None else odom
+        sensor = (at.x, at.y, at.theta)
+        self._memory.update_from(out, sensor, frame.t, view=self._perception.view)
+        remembered = self._memory.points_base((odom.x, odom.y, odom.theta), frame.t)
         t2 = clock()
         tracks = self._tracker.update(self._memory.frame_points, frame.t,
-                                      sensor_pose=np.array(pose))
+                                      sensor_pose=np.array(sensor))
         t3 = clock()
         self.stage_s.update(perception=t1 - t0, memory=t2 - t1, tracking=t3 - t2)
         return WorldState(frame.t, out.scan.copy(), out.unknown.copy(), out.bin_angles,

@@ -32,6 +32,8 @@ from sim_stub.scenario import SCENARIO_DIR, load_scenario
 from sim_stub.world import goal_in_odom
 
 STARTUP_S = 60.0
+AT_FAULT_KEYS = ("t", "world_t", "collided_with", "robot_speed", "robot_closing", "other_closing",
+                 "bearing_deg")
 
 
 def rss_mb(pid: int) -> float | None:
@@ -125,8 +127,8 @@ def soak(args: argparse.Namespace) -> dict[str, Any]:
         "contacts": len(touched),
         "contacts_at_fault": sum(1 for c in touched if c.get("at_fault")),
         "contacts_moving": sum(1 for c in touched if c.get("moving")),
-        "at_fault": [{k: c[k] for k in ("world_t", "speed", "bearing_deg", "collided_with")
-                      if k in c} for c in touched if c.get("at_fault")],
+        "at_fault": [{k: c[k] for k in AT_FAULT_KEYS if k in c}
+                     for c in touched if c.get("at_fault")],
         "min_separation_m": world.get("min_separation"),
         "rss_mb": {"first": rss[0][1] if rss else None, "last": rss[-1][1] if rss else None,
                    "max": max((r for _, r in rss), default=None),
