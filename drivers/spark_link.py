@@ -38,11 +38,17 @@ log = logging.getLogger("safemove.base")
 
 SerialFactory = Callable[..., serial.Serial]
 FEEDBACK_QUEUE_LEN = 1000  # 20 s at 50 Hz: only reached if the loop stops draining
+REJECT_LOG_INTERVAL_S = 10.0  # rejected frames are logged as one summary line per interval
+# The first summary comes early: a start-up that receives only implausible frames says so before
+# the loop gives up waiting for feedback.
+FIRST_REJECT_LOG_S = 1.0
 
 
 @dataclass(frozen=True)
 class LinkStats:
-    """Counters for health reporting; all monotonic over the link's life."""
+    """Counters for health reporting; all monotonic over the link's life. `rejected` holds the
+    frames dropped by reason: the parser's (framing, checksum) and the feedback converter's
+    (implausible content); `conversion` the converter's baseline and recovery events."""
 
     connected: bool
     connects: int
@@ -75,7 +81,7 @@ class SparkBaseLink:
         self._clock = clock
         self._serial_factory = serial_factory
         self._parser = FrameParser(BASE_TO_HOST)
-        self._converter = FeedbackConverter(calibration, cfg.glitch_ticks)
+        self._converter = FeedbackConverter(calibration, cfg)
         self._incoming: deque[WheelIncrement] = deque()
         self._lock = threading.Lock()  # guards the port for writes and the command fields
         self._port: serial.Serial | None = None
@@ -86,6 +92,8 @@ class SparkBaseLink:
         self._counts: Counter[str] = Counter()
         self._last_feedback_time: float | None = None
         self._feedback_since_connect = False
+        self._reject_log_due = clock() + FIRST_REJECT_LOG_S
+        self._rejects_logged: dict[str, int] = {}
 
     # --- called from the control loop ----------------------------------------------------------
 
@@ -142,7 +150,7 @@ class SparkBaseLink:
             feedback_frames=c["feedback_frames"],
             undecodable=c["undecodable"],
             queue_overflows=c["queue_overflows"],
-            rejected=dict(self._parser.rejected),
+            rejected=self._rejected(),
             skipped_bytes=self._parser.skipped_bytes,
             conversion=dict(self._converter.counts),
         )
@@ -180,7 +188,6 @@ class SparkBaseLink:
         )
         port.reset_input_buffer()  # bytes queued before we opened belong to nobody
         self._parser.reset()
-        self._converter.mark_gap()
         self._feedback_since_connect = False
         with self._lock:
             self._port = port
@@ -287,15 +294,37 @@ class SparkBaseLink:
                 continue
             self._counts["feedback_frames"] += 1
             self._feedback_since_connect = True
+            rebaselines = self._converter.counts["rebaseline"]
             inc = self._converter.convert(fb, t)
             if self._converter.usable:
                 self._last_feedback_time = t
+            if self._converter.counts["rebaseline"] > rebaselines:
+                log.warning("base encoder counts restarted (base reboot?): odometry continues from"
+                            " the new counts; the travel since the last good frame is lost")
             if inc is None:
                 continue
             if len(self._incoming) >= FEEDBACK_QUEUE_LEN:
                 self._incoming.popleft()
                 self._counts["queue_overflows"] += 1
             self._incoming.append(inc)
+        if t >= self._reject_log_due:
+            self._log_rejects(t)
+
+    def _rejected(self) -> dict[str, int]:
+        return {**self._parser.rejected, **self._converter.rejected}
+
+    def _log_rejects(self, now: float) -> None:
+        """One line per interval for the feedback frames dropped since the last line, by reason
+        (at 50 Hz a line per frame would flood the journal exactly when the link is bad)."""
+        self._reject_log_due = now + REJECT_LOG_INTERVAL_S
+        rejected = self._rejected()
+        new = {k: n - self._rejects_logged.get(k, 0) for k, n in rejected.items()}
+        self._rejects_logged = rejected
+        if any(new.values()):
+            events = sorted(self._converter.counts.items())
+            log.warning("base feedback: frames dropped since the last report: %s (odometry so far:"
+                        " %s)", ", ".join(f"{n} {k}" for k, n in new.items() if n),
+                        ", ".join(f"{n} {k}" for k, n in events) or "no baseline yet")
 
 
 def _reason(exc: BaseException) -> str:

@@ -9,7 +9,19 @@ State `[x, y, θ, v, ω, b]`: pose in the odom frame (m, m, rad), body speed (m/
 2. wheel update, gated by the Mahalanobis distance (χ², 2 dof): z = [v_wheel, heading_wheel]
    (`wheel_heading: cumulative`, the default) or z = [v_wheel, ω_wheel] (`rate`), all from this
    increment's travel;
-3. gyro update, z = [gyro_z] with h = ω + b, gated (χ², 1 dof).
+3. gyro update, z = [gyro_z] with h = ω + b, gated (χ², 1 dof);
+4. the position is put where the increment's travel took it, along the mean of the start and
+   the fused end heading: dead reckoning on the fused heading. The speed update alone corrects
+   only part of the prediction's along-track error, which builds up wherever frames are
+   missing (the speed changed during the longer increment). Travel is taken from every
+   increment, gated or not: wheel counts are cumulative, so a wrong reading that got past the
+   driver is undone by the next increment, and dropping either of the two would keep its
+   error for good. The gate keeps such a pair (and a slip) out of speed and heading; a slip's
+   travel stays in the position, as in any wheel odometry.
+
+An increment spanning more than `MAX_UNCONFIRMED_DT_S` (a gap: frames lost or rejected) is no
+speed measurement at all; the driver releases it only once two frames in a row agreed on it,
+and it moves the pose by its own travel and turn (`_bridge_gap`).
 
 Why a cumulative wheel heading: encoder error is on each *reading* (quantisation, count jitter),
 so the difference of two readings has a large error that does not accumulate. Fed to the filter
@@ -44,7 +56,7 @@ from filterpy.kalman import ExtendedKalmanFilter
 
 from runtime.odometry import wrap_angle
 from runtime.schema import setting
-from runtime.types import Odometry, WheelIncrement
+from runtime.types import MAX_UNCONFIRMED_DT_S, Odometry, WheelIncrement
 
 X, Y, TH, V, W, B = range(6)
 DIM_X = 6
@@ -254,6 +266,12 @@ class OdometryEKF:
         if not (math.isfinite(dt) and dt > 0):
             self.rejected["bad_dt"] += 1
             return self.odometry()
+        ekf = self._ekf
+        start = (float(ekf.x[X, 0]), float(ekf.x[Y, 0]), float(ekf.x[TH, 0]))
+        if dt > MAX_UNCONFIRMED_DT_S:
+            self._bridge_gap(inc, start)
+            return self.odometry()
+        v_prior = float(ekf.x[V, 0])
         predicted_turn = self._predict(dt)
         v_wheel = 0.5 * (inc.d_right + inc.d_left) / dt
         turn = (inc.d_right - inc.d_left) / self.axle_m
@@ -282,9 +300,59 @@ class OdometryEKF:
                 self._gated_update("gyro", self._z_gyro, self._H_gyro, self._R_gyro)
             else:
                 self.rejected["gyro_nonfinite"] += 1
+        if math.isfinite(v_wheel) and math.isfinite(turn):
+            self._move_by_travel(start, v_wheel * dt)
+        else:
+            self._distance += abs(v_prior) * dt
         P = self._ekf.P
         self._ekf.P = 0.5 * (P + P.T)
         return self.odometry()
+
+    def _move_by_travel(self, start: tuple[float, float, float], ds: float) -> None:
+        """Put the position where the increment's travel `ds` took it from `start`, along the
+        mean of the start and the fused end heading (see step 4 of the module doc)."""
+        x0, y0, th0 = start
+        heading = th0 + 0.5 * wrap_angle(float(self._ekf.x[TH, 0]) - th0)
+        self._ekf.x[X, 0] = x0 + ds * math.cos(heading)
+        self._ekf.x[Y, 0] = y0 + ds * math.sin(heading)
+        self._distance += abs(ds)
+
+    def _bridge_gap(self, inc: WheelIncrement, start: tuple[float, float, float]) -> None:
+        """An increment over a gap (frames lost or rejected): the pose moves by its travel.
+
+        Predicting at the speed from before the gap would be wrong by whatever happened in it (a
+        robot that braked during an outage would be carried on at cruise speed: 0.3 m over a 3 s
+        gap at 0.1 m/s), and a speed averaged over the gap is no measurement of the speed now.
+        The driver releases such an increment only once two frames in a row agreed on it, so
+        its travel and turn are taken as they are, ungated, like dead reckoning over one step;
+        the pose variance grows by their error, the bias by its walk over the gap, and v is left
+        for the next increments to pin down (its variance is re-inflated). ω keeps its estimate, which the gyro updates this step:
+        re-inflating it too would open the heading gate to a corrupted turn in the next one.
+        """
+        ekf, c = self._ekf, self.config
+        ds = 0.5 * (inc.d_left + inc.d_right)
+        turn = (inc.d_right - inc.d_left) / self.axle_m
+        if not (math.isfinite(ds) and math.isfinite(turn)):
+            self.rejected["wheel_nonfinite"] += 1
+            return
+        ekf.x[TH, 0] = wrap_angle(start[2] + turn)
+        ekf.x[V, 0] = ds / inc.dt
+        self._turn_raw += turn
+        P = ekf.P
+        travel_var = c.wheel_travel_sigma_m**2
+        P[X, X] += travel_var
+        P[Y, Y] += travel_var
+        P[TH, TH] += 2.0 * travel_var / self.axle_m**2 + c.wheel_heading_sigma_rad**2
+        P[B, B] += c.bias_walk_rad_s_sqrt_s**2 * inc.dt
+        keep = P[V, V]
+        P[V, :] = 0.0
+        P[:, V] = 0.0
+        P[V, V] = keep + 1.0
+        self.accepted["wheel_gap"] += 1
+        if inc.gyro_z is not None and math.isfinite(inc.gyro_z):
+            self._z_gyro[0, 0] = inc.gyro_z
+            self._gated_update("gyro", self._z_gyro, self._H_gyro, self._R_gyro)
+        self._move_by_travel(start, ds)
 
     def _cumulative_heading(self) -> float:
         """Wheel heading measurement (wrapped), restoring the offset from before a rejection run
@@ -334,7 +402,6 @@ class OdometryEKF:
         ekf.Q = Q
         ekf.dt = dt
         ekf.predict()
-        self._distance += abs(v) * dt
         return w * dt
 
     def _set_wheel_R(self, dt: float) -> None:

@@ -59,6 +59,12 @@ class BaseStatus(enum.IntFlag):
     CHARGER_PLUGGED = 128
 
 
+# An increment spanning longer than this (frames lost or rejected in between) is released by the
+# base driver only once two frames in a row agreed on its end reading, so odometry may take its
+# travel as a displacement: a constant-velocity prediction cannot know what happened in a gap.
+MAX_UNCONFIRMED_DT_S = 0.5
+
+
 @dataclass(frozen=True, slots=True)
 class WheelIncrement:
     """One feedback frame turned into SI motion since the previous accepted frame.

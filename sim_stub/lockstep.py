@@ -57,7 +57,7 @@ class LockstepEpisode:
                                        seed=seed)
         self._noise = noise
         self._parser = FrameParser(BASE_TO_HOST)
-        self._converter = FeedbackConverter(cal.odometry, cfg.base.glitch_ticks)
+        self._converter = FeedbackConverter(cal.odometry, cfg.base)
         self._ekf = OdometryEKF(cal.odometry.axle_length_m, cfg.odometry)
         self._model = WorldModel(cfg, cal.camera)
         self._limits = cfg.limits

@@ -31,7 +31,7 @@ def test_straight_run_distance_matches_in_odometry_and_ground_truth(emulator, sa
     assert truth["distance"] == pytest.approx(0.4, rel=0.02)
     assert report["odometry"]["x"] == pytest.approx(truth["x"], abs=0.002)
     # the default emulator starts its encoders just below 2^32: the run crossed the wrap
-    assert report["link"]["conversion"].get("glitch", 0) == 0
+    assert report["link"]["rejected"]["encoder_jump"] == 0
 
 
 def test_sigterm_mid_motion_sends_stop_within_100_ms(emulator, safemove):

@@ -61,7 +61,7 @@ class DriveResult:
     ekf_odom: Odometry
     dead_reckoning: Odometry
     gyro_heading: float  # plain integral of the (biased) gyro
-    converter_counts: dict[str, int]
+    converter_rejected: dict[str, int]
     increments: int
     slips: int
 
@@ -110,9 +110,9 @@ def scripted_drive(seed: int = 1, glitch_every_s: float = 2.5) -> DriveResult:
             t += DT
             n += 1
             if n % steps_per_glitch == 0:
-                # Alternate a big spike (the converter drops it) and a small one that passes the
-                # converter's 1000-tick threshold and must be stopped by the filter's gate.
-                sim.glitch_next_frame(5000 if (n // steps_per_glitch) % 2 else 300)
+                # Alternate a big spike (the converter drops it) and a small one that is within
+                # what the wheels can travel in a frame and must be stopped by the filter's gate.
+                sim.glitch_next_frame(5000 if (n // steps_per_glitch) % 2 else 40)
             for fr in parser.feed(sim.feedback_frame()):
                 inc = converter.convert(decode_feedback(fr.payload), t)
                 if inc is None:
@@ -130,7 +130,7 @@ def scripted_drive(seed: int = 1, glitch_every_s: float = 2.5) -> DriveResult:
         ekf_odom=odom,
         dead_reckoning=dr,
         gyro_heading=gyro_heading,
-        converter_counts=dict(converter.counts),
+        converter_rejected=dict(converter.rejected),
         increments=n,
         slips=slips,
     )
@@ -154,7 +154,7 @@ def test_scripted_drive_meets_accuracy(drive: DriveResult) -> None:
         f" ± {drive.ekf.bias_sigma:.5f} rad/s (true {BIAS}); dead reckoning heading"
         f" {dr_heading_deg:.3f}°, position {100 * dr_pos / distance:.3f} %; gyro-only heading"
         f" {gyro_deg:.2f}°; EKF rejected {dict(drive.ekf.rejected)}; converter"
-        f" {drive.converter_counts}"
+        f" rejected {drive.converter_rejected}"
     )
     assert distance > 5.0
     assert drive.slips == len(SLIP_TIMES)
@@ -169,7 +169,7 @@ def test_scripted_drive_meets_accuracy(drive: DriveResult) -> None:
 
 
 def test_scripted_drive_gates_glitches_and_slips(drive: DriveResult) -> None:
-    assert drive.converter_counts.get("glitch", 0) >= 5  # the 5000-tick spikes
+    assert drive.converter_rejected["encoder_jump"] >= 5  # the 5000-tick spikes
     # Each small spike gives two bad increments (spike up, then back down); each slip one.
     assert drive.ekf.rejected["wheel_gate"] >= drive.slips + 2 * 5
     assert drive.ekf.rejected["wheel_reacquire"] == 0
@@ -223,10 +223,14 @@ def test_single_slip_is_gated_and_ignored(mode: str) -> None:
     twin.step(good)
     assert ekf.rejected["wheel_gate"] == 1
     assert twin.rejected.total() == 0
-    # Only the prediction and the gyro moved it: same as the twin that got the good frame.
-    np.testing.assert_allclose(ekf.x[:5], twin.x[:5], atol=2e-4)
+    # Heading, speed and turn rate: only the prediction and the gyro moved them, as in the twin
+    # that got the good frame.
+    np.testing.assert_allclose(ekf.x[2:5], twin.x[2:5], atol=2e-4)
     assert abs(ekf.x[2] - before[2]) < 1e-4
-    assert ekf.x[0] - before[0] == pytest.approx(0.2 * DT, abs=2e-4)
+    # The position follows every increment's travel (a wrong count is undone by the next one),
+    # so half the spinning wheel's 12 mm stays in it, as in any wheel odometry.
+    assert ekf.x[0] - twin.x[0] == pytest.approx(0.006, abs=2e-4)
+    assert abs(ekf.x[1] - twin.x[1]) < 2e-4
 
 
 def test_normal_driving_is_not_rejected() -> None:
@@ -365,3 +369,52 @@ def test_closed_form_gate_distance_matches_a_general_solve() -> None:
             y = rng.normal(size=(n, 1))
             assert _mahalanobis2(y, S) == pytest.approx((y.T @ np.linalg.solve(S, y)).item(), rel=1e-9)
     assert _mahalanobis2(np.ones((2, 1)), np.zeros((2, 2))) == math.inf
+
+
+def test_position_follows_the_wheels_travel_when_frames_are_missing() -> None:
+    """Braking from 0.3 m/s at 1 m/s² with four frames of five missing: each increment spans
+    100 ms in which the speed fell by 0.1 m/s. Predicting at the speed from before an increment
+    put the position 5 mm further per increment; the travel puts it where the wheels went."""
+    ekf = OdometryEKF(AXLE)
+    t = _run_straight(ekf, 100, v=0.3)
+    x0, travelled, v = ekf.x[0], 0.0, 0.3
+    for _ in range(3):
+        ds = v * 0.1 - 0.5 * 1.0 * 0.1**2
+        v -= 0.1
+        t += 0.1
+        travelled += ds
+        ekf.step(_increment(t, 0.1, ds, ds, 0.0))
+    assert ekf.x[0] - x0 == pytest.approx(travelled, abs=1e-6)
+    assert ekf.rejected.total() == 0
+
+
+def test_an_increment_over_a_gap_moves_the_pose_by_its_travel_and_turn() -> None:
+    """3 s without a usable frame, in which the robot braked and turned 0.2 rad: predicted at
+    its speed from before the gap it would have gone 0.6 m on; it went 0.06 m."""
+    ekf = OdometryEKF(AXLE)
+    t = _run_straight(ekf, 100, v=0.2)
+    x0, y0 = ekf.x[0], ekf.x[1]
+    turn = 0.2
+    d_left, d_right = 0.06 - turn * AXLE / 2, 0.06 + turn * AXLE / 2
+    ekf.step(_increment(t + 3.0, 3.0, d_left, d_right, 0.0))
+    assert ekf.accepted["wheel_gap"] == 1
+    assert ekf.x[2] == pytest.approx(turn, abs=1e-3)
+    assert ekf.x[0] - x0 == pytest.approx(0.06 * math.cos(turn / 2), abs=1e-4)
+    assert ekf.x[1] - y0 == pytest.approx(0.06 * math.sin(turn / 2), abs=1e-4)
+    # standing still afterwards: the speed settles to 0 at once, the pose stays
+    t = _run_straight(ekf, 10, t0=t + 3.0, v=0.0)
+    assert abs(ekf.x[3]) < 0.01 and ekf.x[0] - x0 == pytest.approx(0.06 * math.cos(0.1), abs=1e-4)
+
+
+def test_a_wrong_count_and_the_increment_that_undoes_it_cost_no_position() -> None:
+    """A corrupted count within what the wheels can do (+30 mm on the left wheel) gets past the
+    driver; the next increment takes it back. Whatever the gate makes of the pair, the position
+    and heading end where the wheels went."""
+    ekf, twin = OdometryEKF(AXLE), OdometryEKF(AXLE)
+    t = _run_straight(ekf, 100)
+    _run_straight(twin, 100)
+    step = 0.2 * DT
+    ekf.step(_increment(t + DT, DT, step + 0.03, step, 0.0))
+    ekf.step(_increment(t + 2 * DT, DT, step - 0.03, step, 0.0))
+    _run_straight(twin, 2, t0=t)
+    np.testing.assert_allclose(ekf.x[:3], twin.x[:3], atol=1e-4)

@@ -9,6 +9,7 @@ import tty
 
 import pytest
 
+from drivers import spark_link
 from drivers.spark_link import SparkBaseLink
 from drivers.spark_protocol import (
     CMD_WHEEL_SPEED,
@@ -107,31 +108,66 @@ def test_fresh_connection_starts_with_stop_then_vendor_query(pty_pair):
     assert data.startswith(STOP_FRAME + bytes.fromhex("534B020016000D0A"))
 
 
+def feedback(left: int, right: int, time_ticks: int) -> bytes:
+    return encode_feedback(Feedback(0x3F, 0, 0, 0, 0, right & 0xFFFFFFFF, left & 0xFFFFFFFF,
+                                    time_ticks, (0, 0, 1), (0, 0, 57.29577951308232),
+                                    (0, 0, 0), (0, 0, 90.0)))
+
+
+def poll_until(link: SparkBaseLink, count: int, timeout: float = 2.0) -> list:
+    deadline = time.monotonic() + timeout
+    incs: list = []
+    while len(incs) < count and time.monotonic() < deadline:
+        incs += link.poll()
+        time.sleep(0.01)
+    return incs
+
+
 def test_feedback_becomes_si_increments_across_the_u32_wrap(pty_pair):
     master, port = pty_pair
     link = make_link(port)
     m_per_tick = OdometryCalibration().m_per_tick
-
-    def frame(left: int, right: int, time_ticks: int) -> bytes:
-        return encode_feedback(Feedback(0x3F, 0, 0, 0, 0, right & 0xFFFFFFFF, left & 0xFFFFFFFF,
-                                        time_ticks, (0, 0, 1), (0, 0, 57.29577951308232),
-                                        (0, 0, 0), (0, 0, 90.0)))
-
     try:
-        os.write(master, frame(-100, -50, 1000) + b"\x00garbage" + frame(100, 250, 1200))
-        deadline = time.monotonic() + 2
-        incs = []
-        while not incs and time.monotonic() < deadline:
-            incs = link.poll()
-            time.sleep(0.01)
+        # two frames that agree make the baseline; the third crosses the u32 wrap
+        os.write(master, feedback(-30, -20, 1000) + b"\x00garbage" + feedback(-10, -5, 1200))
+        time.sleep(0.05)
+        os.write(master, feedback(10, 20, 1400))
+        incs = poll_until(link, 1)
     finally:
         link.close()
     assert len(incs) == 1
     inc = incs[0]
-    assert inc.d_left == pytest.approx(200 * m_per_tick)
-    assert inc.d_right == pytest.approx(300 * m_per_tick)
+    assert inc.d_left == pytest.approx(20 * m_per_tick)
+    assert inc.d_right == pytest.approx(25 * m_per_tick)
     assert inc.dt == pytest.approx(0.02)
     assert inc.gyro_z == pytest.approx(1.0)
     assert inc.yaw == pytest.approx(1.5707963, abs=1e-6)
     assert inc.hazard is None
     assert link.stats().skipped_bytes > 0
+
+
+def test_implausible_frames_are_counted_by_reason_logged_once_and_cost_no_distance(
+        pty_pair, monkeypatch, caplog):
+    for interval in ("FIRST_REJECT_LOG_S", "REJECT_LOG_INTERVAL_S"):  # a summary every read
+        monkeypatch.setattr(spark_link, interval, 0.0)
+    master, port = pty_pair
+    link = make_link(port)
+    m_per_tick = OdometryCalibration().m_per_tick
+    bad_checksum = bytearray(feedback(0, 0, 1400))
+    bad_checksum[-3] ^= 1
+    try:
+        os.write(master, feedback(0, 0, 1000) + feedback(10, 10, 1200))
+        time.sleep(0.05)
+        # passes the checksum but the left wheel jumped 4096 ticks (0.06 m/s at most in 20 ms)
+        os.write(master, bytes(bad_checksum) + feedback(4096 + 20, 20, 1400))
+        time.sleep(0.05)
+        os.write(master, feedback(30, 30, 1600))
+        incs = poll_until(link, 1)
+    finally:
+        link.close()
+    assert [round(i.d_left / m_per_tick) for i in incs] == [20]  # spans the rejected frame
+    assert incs[0].dt == pytest.approx(0.04)
+    rejected = link.stats().rejected
+    assert rejected["checksum"] >= 1 and rejected["encoder_jump"] == 1
+    summaries = [r.getMessage() for r in caplog.records if "frames dropped" in r.getMessage()]
+    assert any("1 encoder_jump" in m for m in summaries)

@@ -1,4 +1,5 @@
-"""Unit and property tests of the pure stages: limits, odometry, feedback conversion, jobs.
+"""Unit and property tests of the pure stages: limits, odometry, jobs (feedback conversion: see
+test_spark_feedback.py).
 
 No processes, no sleeps, no devices: hand-built Feedback / Odometry / WheelIncrement values.
 """
@@ -12,9 +13,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.spark_feedback import FeedbackConverter
-from drivers.spark_protocol import Feedback
-from runtime.config import LimitsConfig, OdometryCalibration
+from runtime.config import LimitsConfig
 from runtime.drive import STILL_FOR_S, DriveJob, HoldJob, Segment
 from runtime.limits import apply_limits
 from runtime.odometry import advance, wrap_angle
@@ -29,7 +28,6 @@ from runtime.types import (
 )
 
 LIMITS = LimitsConfig()  # v [-0.1, 0.3], |omega| <= 1, accel 0.5, decel 1.0, alpha 2.0
-M_PER_TICK = OdometryCalibration().m_per_tick
 AXLE = 0.266
 
 # --- apply_limits --------------------------------------------------------------------------------
@@ -219,216 +217,6 @@ def test_wrap_angle_property(a: float) -> None:
 
 def test_wrap_angle_just_below_minus_pi() -> None:
     assert wrap_angle(math.nextafter(-math.pi, -4.0)) < math.pi
-
-
-# --- FeedbackConverter ---------------------------------------------------------------------------
-
-NO_CLIFF = 0x3F
-
-
-def fb(e10: int = 0, e14: int = 0, t: int = 0, *, cliff: int = NO_CLIFF, bumper: int = 0,
-       status: int = 0, gyro_z_dps: float | None = None, yaw_deg: float | None = None) -> Feedback:
-    imu = {}
-    if gyro_z_dps is not None or yaw_deg is not None:
-        imu = {"accel_g": (0.0, 0.0, 1.0), "gyro_dps": (0.0, 0.0, gyro_z_dps or 0.0),
-               "mag": (0.0, 0.0, 0.0), "rpy_deg": (0.0, 0.0, yaw_deg or 0.0)}
-    return Feedback(cliff, bumper, status, 0, 0, e10 & 0xFFFFFFFF, e14 & 0xFFFFFFFF,
-                    t & 0xFFFFFFFF, **imu)
-
-
-def conv(offset: int = 14, **kw) -> FeedbackConverter:
-    return FeedbackConverter(OdometryCalibration(left_encoder_offset=offset), **kw)
-
-
-def test_first_frame_is_only_the_baseline() -> None:
-    c = conv()
-    assert c.convert(fb(100, 200, 1000), 1.0) is None
-    assert c.counts["baseline"] == 1
-
-
-@pytest.mark.parametrize(("offset", "left", "right"), [(14, 30, 10), (10, 10, 30)])
-def test_left_right_mapping_follows_the_calibration(offset: int, left: int, right: int) -> None:
-    c = conv(offset)
-    c.convert(fb(e10=1000, e14=5000, t=1000), 1.0)
-    w = c.convert(fb(e10=1010, e14=5030, t=1500), 1.05)
-    assert w is not None
-    assert w.t == 1.05 and w.dt == pytest.approx(0.05)  # dt from the base clock (0.1 ms ticks)
-    assert w.d_left == pytest.approx(left * M_PER_TICK)
-    assert w.d_right == pytest.approx(right * M_PER_TICK)
-
-
-def test_encoder_u32_wrap_gives_the_positive_delta() -> None:
-    c = conv()
-    c.convert(fb(e10=0xFFFFFFF0, e14=0xFFFFFFFF, t=0xFFFFFF00), 0.0)  # base clock wraps too
-    w = c.convert(fb(e10=0x10, e14=0x00, t=0x100), 0.05)
-    assert w is not None
-    assert w.d_right == pytest.approx(0x20 * M_PER_TICK)  # 0xFFFFFFF0 -> 0x10: 32 ticks
-    assert w.d_left == pytest.approx(1 * M_PER_TICK)  # 0xFFFFFFFF -> 0: exactly one tick
-    assert w.dt == pytest.approx(0x200 * 1e-4)
-    back = c.convert(fb(e10=0xFFFFFFF0, e14=0xFFFFFFFF, t=0x300), 0.1)
-    assert back is not None and back.d_right == pytest.approx(-0x20 * M_PER_TICK)
-
-
-def test_glitch_threshold_is_inclusive() -> None:
-    c = conv(glitch_ticks=1000)
-    c.convert(fb(t=0), 0.0)
-    assert c.convert(fb(e14=999, t=10_000), 1.0) is not None
-    assert c.convert(fb(e14=999 + 1000, t=20_000), 2.0) is None
-    assert c.counts["glitch"] == 1
-
-
-def test_one_frame_glitch_is_dropped_and_no_motion_is_lost() -> None:
-    c = conv(glitch_ticks=1000)
-    c.convert(fb(e14=0, e10=0, t=0), 0.0)
-    a = c.convert(fb(e14=100, e10=100, t=500), 0.05)
-    assert c.convert(fb(e14=100 + 50_000, e10=100, t=1000), 0.10) is None  # spike on one wheel
-    assert c.counts["glitch"] == 1
-    b = c.convert(fb(e14=220, e10=230, t=1500), 0.15)
-    assert a is not None and b is not None
-    assert b.d_left == pytest.approx(120 * M_PER_TICK)  # from the pre-glitch baseline 100
-    assert b.d_right == pytest.approx(130 * M_PER_TICK)
-    assert b.dt == pytest.approx(0.1)  # spans the dropped frame
-    assert (a.d_left + b.d_left) == pytest.approx(220 * M_PER_TICK)
-    assert c.counts["rebaseline"] == 0
-
-
-def test_baseline_is_retaken_after_consecutive_glitches() -> None:
-    c = conv(glitch_ticks=1000, max_consecutive_glitches=3)
-    c.convert(fb(e14=500_000, e10=500_000, t=0), 0.0)
-    # the counters restarted from zero (base reboot) while the clock kept going
-    results = [c.convert(fb(e14=10 * k, e10=10 * k, t=500 * k), 0.05 * k) for k in (1, 2, 3)]
-    assert results == [None, None, None]
-    assert c.counts["glitch"] == 3 and c.counts["rebaseline"] == 1
-    w = c.convert(fb(e14=40, e10=40, t=2000), 0.2)
-    assert w is not None and w.d_left == pytest.approx(10 * M_PER_TICK)
-    assert w.dt == pytest.approx(0.05)
-
-
-def test_glitch_run_is_reset_by_a_good_frame() -> None:
-    c = conv(glitch_ticks=1000, max_consecutive_glitches=3)
-    c.convert(fb(t=0), 0.0)
-    t = 0
-    for _ in range(3):
-        for _ in range(2):
-            t += 500
-            assert c.convert(fb(e14=10**6, t=t), 0.0) is None
-        t += 500
-        assert c.convert(fb(e14=0, t=t), 0.0) is not None
-    assert c.counts["glitch"] == 6 and c.counts["rebaseline"] == 0
-
-
-def test_after_a_gap_a_large_delta_at_a_plausible_speed_is_accepted() -> None:
-    c = conv(glitch_ticks=1000)
-    c.convert(fb(e14=0, e10=0, t=0), 0.0)
-    c.mark_gap()
-    w = c.convert(fb(e14=5000, e10=5000, t=50_000), 5.0)  # 1.44 m over 5 s: 0.29 m/s
-    assert w is not None and w.d_left == pytest.approx(5000 * M_PER_TICK) and w.dt == 5.0
-    # the gap allowance is used up: the next big jump is a glitch again
-    assert c.convert(fb(e14=10_000, e10=5000, t=50_500), 5.05) is None
-    assert c.counts["glitch"] == 1
-
-
-def test_after_a_gap_an_implausible_speed_is_rejected() -> None:
-    c = conv(glitch_ticks=1000)
-    c.convert(fb(t=0), 0.0)
-    c.mark_gap()
-    assert c.convert(fb(e14=5000, e10=5000, t=1000), 0.1) is None  # 14 m/s
-    assert c.counts["glitch"] == 1
-    # across an outage there is no baseline worth keeping: it is retaken from the rejected frame
-    assert c.counts["rebaseline"] == 1 and c.usable
-    w = c.convert(fb(e14=5010, e10=5010, t=1500), 0.15)
-    assert w is not None and w.d_left == pytest.approx(10 * M_PER_TICK)
-
-
-def test_after_a_gap_a_base_clock_that_disagrees_with_the_host_means_a_reboot() -> None:
-    c = conv()
-    c.convert(fb(e14=100, e10=100, t=10_000), 0.0)
-    c.mark_gap()
-    # 2 s passed on the host, but the base clock says 20 s: not the same session
-    assert c.convert(fb(e14=200, e10=200, t=210_000), 2.0) is None
-    assert c.counts["clock_jump"] == 1 and c.counts["rebaseline"] == 1
-
-
-@pytest.mark.parametrize("t_next", [1000, 999], ids=["same", "backwards"])
-def test_non_advancing_base_timestamp_is_dropped(t_next: int) -> None:
-    c = conv()
-    c.convert(fb(e14=0, t=1000), 0.0)
-    assert c.convert(fb(e14=10, t=t_next), 0.05) is None
-    assert c.counts["clock_backwards"] == 1 and not c.usable
-    w = c.convert(fb(e14=20, t=1500), 0.10)  # measured from the last accepted frame
-    assert w is not None and w.d_left == pytest.approx(20 * M_PER_TICK)
-
-
-def test_base_clock_restart_after_a_gap_is_recovered() -> None:
-    c = conv()
-    c.convert(fb(e14=3_000_000, e10=3_000_000, t=36_000_000), 0.0)  # base up for an hour
-    c.mark_gap()  # USB link lost and back: the base rebooted, counters and clock restarted
-    out = [c.convert(fb(e14=10 * k, e10=10 * k, t=500 * k, cliff=0x3E), 10.0 + 0.05 * k)
-           for k in range(1, 11)]
-    assert any(w is not None for w in out), dict(c.counts)
-
-
-def test_si_conversions() -> None:
-    c = conv(glitch_ticks=10**6)
-    c.convert(fb(t=0, gyro_z_dps=0.0, yaw_deg=0.0), 0.0)
-    w = c.convert(fb(e14=3462, e10=-3462, t=10_000, gyro_z_dps=90.0, yaw_deg=-180.0), 1.0)
-    assert w is not None
-    assert w.d_left == pytest.approx(3462 * 0.00028885)  # ~1 m
-    assert w.d_right == pytest.approx(-3462 * 0.00028885)
-    assert w.dt == pytest.approx(1.0)
-    assert w.gyro_z == pytest.approx(math.pi / 2)
-    assert w.yaw == pytest.approx(-math.pi)
-    no_imu = c.convert(fb(t=20_000), 2.0)
-    assert no_imu is not None and no_imu.gyro_z is None and no_imu.yaw is None
-
-
-@pytest.mark.parametrize(
-    ("cliff_bits", "expected"),
-    [
-        (0x3F, CliffSensor(0)),
-        (0xFF, CliffSensor(0)),  # bits above the six sensors are ignored
-        (0x3E, CliffSensor.RIGHT),
-        (0x1F, CliffSensor.BACK_LEFT),
-        (0x00, CliffSensor(0x3F)),
-    ],
-)
-def test_cliff_bits_are_active_low(cliff_bits: int, expected: CliffSensor) -> None:
-    c = conv()
-    c.convert(fb(t=0), 0.0)
-    w = c.convert(fb(t=500, cliff=cliff_bits), 0.05)
-    assert w is not None
-    assert w.cliffs == expected
-    if expected:
-        assert w.hazard is not None and "cliff" in w.hazard
-    else:
-        assert w.hazard is None
-
-
-@pytest.mark.parametrize(
-    ("status", "hazard"),
-    [
-        (int(BaseStatus.WHEEL_DROP_LEFT), "wheel drop"),
-        (int(BaseStatus.WHEEL_DROP_RIGHT | BaseStatus.CHARGER_PLUGGED), "wheel drop"),
-        (int(BaseStatus.UNDER_CONTROL | BaseStatus.OVER_CURRENT_LEFT), None),
-    ],
-    ids=["left-drop", "right-drop", "no-drop"],
-)
-def test_wheel_drop_status_is_a_hazard(status: int, hazard: str | None) -> None:
-    c = conv()
-    c.convert(fb(t=0), 0.0)
-    w = c.convert(fb(t=500, status=status), 0.05)
-    assert w is not None and w.status == BaseStatus(status)
-    if hazard is None:
-        assert w.hazard is None
-    else:
-        assert w.hazard is not None and hazard in w.hazard
-
-
-def test_proximity_ignores_the_error_flag_bit() -> None:
-    c = conv()
-    c.convert(fb(t=0), 0.0)
-    w = c.convert(fb(t=500, bumper=0x80 | 0x04), 0.05)
-    assert w is not None and w.proximity == Proximity.FRONT
 
 
 # --- DriveJob ------------------------------------------------------------------------------------
