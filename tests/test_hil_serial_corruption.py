@@ -9,7 +9,7 @@ import pytest
 
 from sim_stub.serial_proxy import CorruptingProxy
 
-pytestmark = pytest.mark.hil
+pytestmark = [pytest.mark.hil, pytest.mark.faults]
 
 # What corruption can still leave in the final odometry is one plausible wrong reading in the
 # run's last cycle, with no later frame to undo it: at most what one wheel can travel in a
@@ -24,7 +24,7 @@ ODOMETRY_TOLERANCE_M = 0.012
     ids=["1%", "3%", "10%-for-3s"],
 )
 def test_corrupted_serial_bytes_cause_no_hazard_and_no_odometry_loss(
-        emulator, safemove, rate: float, burst_s: float | None) -> None:
+        emulator, safemove, fault_table, rate: float, burst_s: float | None) -> None:
     # Corruption starts once the robot drives, so the run starts on a clean baseline; at 10 %
     # hardly a frame passes the checksum, so that rate comes as a burst the runtime must ride
     # out (DEGRADED: stale feedback) and then recover the distance travelled meanwhile.
@@ -33,6 +33,7 @@ def test_corrupted_serial_bytes_cause_no_hazard_and_no_odometry_loss(
                         "--set", "loop.stats_interval_s=0", "--set", "limits.accel_max=1.0",
                         "--twist", "0.2", "0", "--duration", "2"])
         emulator.wait_for("command", timeout_s=15)  # the first wheel command: it drives
+        t0 = time.monotonic()
         if burst_s is None:
             proxy.set_rate(rate)
         else:
@@ -58,3 +59,10 @@ def test_corrupted_serial_bytes_cause_no_hazard_and_no_odometry_loss(
     assert report["odometry"]["x"] == pytest.approx(truth["x"], abs=ODOMETRY_TOLERANCE_M)
     assert report["odometry"]["y"] == pytest.approx(truth["y"], abs=ODOMETRY_TOLERANCE_M)
     assert truth["x"] > 0.3
+    degraded_at = [tr["t"] for tr in report["transitions"] if tr["to"] == "DEGRADED"]
+    error_mm = 1000 * abs(report["odometry"]["x"] - truth["x"])
+    fault_table(f"serial bytes corrupted {rate:.0%}" + (f" for {burst_s:g} s" if burst_s else ""),
+                "no hazard, no odometry lost",
+                f"no hazard; odometry off {error_mm:.1f} mm; {sum(link['rejected'].values())}"
+                f" frames rejected; {report['degraded_cycles']} cycles DEGRADED (stale)",
+                f"{degraded_at[0] - t0:.3f} s" if degraded_at else "-", "-", "-", "-")
