@@ -7,12 +7,25 @@ import os
 import signal
 import subprocess
 import sys
+import tty
 from collections.abc import Callable, Iterator
 from typing import Any
 
 import pytest
 
 from sim_stub.emulator_process import EmulatorProcess
+
+
+@pytest.fixture
+def pty_pair() -> Iterator[tuple[int, str]]:
+    """A raw pty: the test reads and writes its master (non-blocking); the code under test
+    opens the slave by its path."""
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    os.set_blocking(master, False)
+    yield master, os.ttyname(slave)
+    os.close(master)
+    os.close(slave)
 
 
 @pytest.fixture

@@ -12,7 +12,6 @@ import sys
 import termios
 import time
 import tty
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -56,17 +55,6 @@ def test_a_rate_change_applies_from_the_next_byte() -> None:
         c.rate = 1.5
 
 
-@pytest.fixture
-def base_pty() -> Iterator[tuple[int, str]]:
-    """A pty standing in for the base: the test writes its master; the proxy opens the slave."""
-    master, slave = os.openpty()
-    tty.setraw(slave)
-    os.set_blocking(master, False)
-    yield master, os.ttyname(slave)
-    os.close(master)
-    os.close(slave)
-
-
 def read_exactly(fd: int, n: int, timeout: float = 5.0) -> bytes:
     out = b""
     deadline = time.monotonic() + timeout
@@ -97,8 +85,8 @@ def open_host(link: Path) -> int:
 
 @pytest.mark.parametrize(("direction", "commands_changed"), [("both", True), ("feedback", False)])
 def test_the_proxy_copies_both_ways_and_corrupts_as_told(
-        base_pty, tmp_path: Path, direction: str, commands_changed: bool) -> None:
-    base, upstream = base_pty
+        pty_pair, tmp_path: Path, direction: str, commands_changed: bool) -> None:
+    base, upstream = pty_pair
     data = DATA[:20_000]
     with CorruptingProxy(upstream, tmp_path / "link", rate=0.05, seed=3,
                          direction=direction) as proxy:  # type: ignore[arg-type]
@@ -122,8 +110,8 @@ def test_the_proxy_copies_both_ways_and_corrupts_as_told(
     assert stats["feedback_corrupted"] == sum(a != b for a, b in zip(feedback, data))
 
 
-def test_a_host_that_does_not_read_gets_recent_bytes_not_a_backlog(base_pty, tmp_path: Path):
-    base, upstream = base_pty
+def test_a_host_that_does_not_read_gets_recent_bytes_not_a_backlog(pty_pair, tmp_path: Path):
+    base, upstream = pty_pair
     with CorruptingProxy(upstream, tmp_path / "link", rate=0.0) as proxy:
         for i in range(0, len(DATA), 2000):  # 200 kB while nobody has the link open
             write_all(base, DATA[i:i + 2000])
@@ -141,8 +129,8 @@ def test_a_host_that_does_not_read_gets_recent_bytes_not_a_backlog(base_pty, tmp
     assert 0 < len(got) <= 4096 and DATA.endswith(got)
 
 
-def test_the_cli_reports_ready_and_its_counts_on_sigterm(base_pty, tmp_path: Path) -> None:
-    base, upstream = base_pty
+def test_the_cli_reports_ready_and_its_counts_on_sigterm(pty_pair, tmp_path: Path) -> None:
+    base, upstream = pty_pair
     link = tmp_path / "link"
     proc = subprocess.Popen(
         [sys.executable, "-m", "sim_stub.serial_proxy", "--upstream", upstream, "--link", str(link),

@@ -5,7 +5,6 @@ from __future__ import annotations
 import itertools
 import os
 import time
-import tty
 
 import pytest
 
@@ -22,16 +21,6 @@ from drivers.spark_protocol import (
 )
 from runtime.config import BaseConfig, OdometryCalibration
 from runtime.types import Twist
-
-
-@pytest.fixture
-def pty_pair():
-    master, slave = os.openpty()
-    tty.setraw(slave)
-    os.set_blocking(master, False)
-    yield master, os.ttyname(slave)
-    os.close(master)
-    os.close(slave)
 
 
 def read_commands(master: int, parser: FrameParser) -> list[tuple[int, int]]:
