@@ -11,7 +11,7 @@ from runtime.cli import main
 from runtime.config import load_config
 from runtime.planning_step import ARRIVAL_RADIUS_M, PlanningStep, predict_tracks_base
 from runtime.tracking import Track
-from runtime.types import Odometry
+from runtime.types import Odometry, Twist
 from runtime.world_model import WorldState
 
 
@@ -57,3 +57,25 @@ def test_dwa_heads_for_the_planning_goal_but_arrival_is_judged_on_the_goal():
     near = Odometry(x=3.0 - 0.9 * ARRIVAL_RADIUS_M, v=0.0)
     assert step.prepare(0.1, near, empty_world(), plan_goal=np.array([9.0, 9.0])) is None
     assert step.reached and step.finished
+
+
+def test_shield_interventions_are_counted_every_cycle_but_logged_once_per_run_of_a_kind(caplog):
+    """A wall 0.35 m ahead: every forward command is braked, cycle after cycle. One log line
+    for the run (the count goes into the loop's statistics line), another when it changes."""
+    step = PlanningStep((5.0, 0.0), load_config(None, []).config, None, "DWA")
+    ys = np.arange(-0.6, 0.61, 0.02)
+    wall = np.stack([np.full_like(ys, 0.35), ys], 1)
+    angles = np.linspace(-0.75, 0.75, 90)
+    blocked = WorldState(0.0, np.full(90, 0.35), np.zeros(90, bool), angles, wall, [], True)
+    moving = Odometry(v=0.2)
+    caplog.set_level("INFO", logger="safemove.planner")
+    for k in range(20):
+        ctx = step.prepare(0.05 * k, moving, blocked)
+        step.certify(Twist(0.3, 0.0), ctx)
+    assert sum(step.interventions.values()) == 20
+    assert len(caplog.records) == len(step.interventions)  # one line per kind, not per cycle
+    ctx = step.prepare(1.0, Odometry(), empty_world())
+    assert step.certify(Twist(0.1, 0.0), ctx) == Twist(0.1, 0.0)  # passed: a run ends
+    ctx = step.prepare(1.05, moving, blocked)
+    step.certify(Twist(0.3, 0.0), ctx)
+    assert len(caplog.records) == len(step.interventions) + 1  # a new run: logged again
