@@ -69,3 +69,24 @@ def test_stale_depth_degrades_the_loop_and_fresh_depth_recovers_it():
     assert [to for _, _, to in report.transitions] == ["RUNNING", "DEGRADED", "RUNNING", "STOPPED"]
     assert report.depth is not None and report.depth.gaps == 0
     assert report.depth.frames == depth.sent
+
+
+def test_floor_check_without_a_floor_plane_says_so_instead_of_printing_nan(caplog):
+    """A wall filling the view leaves no near-vertical plane to fit: no 'tilt nan°'."""
+    import math
+
+    from runtime.perception import FloorVerdict
+
+    loop = ControlLoop(Config(), Calibration(), FreshFeedbackLink(), HoldJob(),
+                       SystemdNotifier(None), depth=SwitchableDepth())
+    verdicts = iter([FloorVerdict(False, math.nan, math.nan, 320),
+                     FloorVerdict(True, 0.2, 0.001, 500),
+                     FloorVerdict(False, 4.0, -0.03, 500)])
+    loop._world_model.check_floor = lambda: next(verdicts)  # type: ignore[method-assign]
+    caplog.set_level("WARNING", logger="safemove.loop")
+    for _ in range(3):
+        loop._check_floor()
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 2 and "nan" not in lines[0]
+    assert "no floor plane among the 320 points" in lines[0]
+    assert "tilt 4.0°, height -0.030 m" in lines[1]
