@@ -119,10 +119,11 @@ class ShieldConfig:
         0.002, "time the search for a certified replacement may take before the shield brakes"
         " instead", "s", min=0.0, max=0.05)
     untracked_approach_m_s: float = setting(
-        0.5, "a remembered point may be a person not (yet) tracked, e.g. one entering from the"
+        1.0, "a remembered point may be a person not (yet) tracked, e.g. one entering from the"
         " side, cut by the view's edge: while the robot closes on a point within"
         " ±approach_half_angle_deg of its heading, it keeps this speed × time as extra distance,"
-        " so it stands before such a person can reach it (0 = off)", "m/s", min=0.0, max=3.0)
+        " so it stands before such a person can reach it (0 = off); the fastest walker the"
+        " robot meets (the simulated crowds walk 0.5-1.0 m/s)", "m/s", min=0.0, max=3.0)
     approach_half_angle_deg: float = setting(
         45.0, "the front, around the direction of travel, where untracked_approach_m_s applies",
         "deg", min=0.0, max=90.0)

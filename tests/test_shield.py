@@ -328,15 +328,15 @@ def test_nan_command_brakes():
 
 
 def test_untracked_points_ahead_are_kept_at_a_distance_a_walking_person_could_close():
-    """With the margin on (the default), a point ahead may be a person walking in at 0.5 m/s:
+    """With the margin on (the default), a point ahead may be a person walking in at 1 m/s:
     the robot must stand still before they could reach it. Turning in place and moving away
     stay free; a point to the side (outside ±45°) or behind gets no margin."""
     cfg = ShieldConfig()
-    assert cfg.untracked_approach_m_s == 0.5
+    assert cfg.untracked_approach_m_s == 1.0
     pts, scan = wall_at(0.30)
     w = world(pts, scan=scan)
     slow = Twist(0.1, 0.0)  # stops 0.015 m on after 0.2 s, 0.285 m from the wall; the margin
-    # asks for 0.22 + 0.5 * 0.2 = 0.32 m
+    # asks for 0.22 + 1.0 * 0.2 = 0.42 m
     assert certify(slow, slow, w, CFG, LIM).ok  # the plain model: clear
     c = certify(slow, slow, w, cfg, LIM)
     assert not c.ok and "may be a person" in c.reason
