@@ -129,7 +129,8 @@ class PlanningStep:
             self.inadmissible += 1
         sw = ShieldWorld(points=world.points_base, track_positions=pos, track_std=std,
                          track_radii=radii, track_dt=dwa.dt, bin_angles=world.bin_angles,
-                         unknown=world.unknown, scan=world.scan)
+                         unknown=world.unknown, scan=world.scan,
+                         points_age=max(0.0, now - world.t))
         return PlanningContext(goal_base, Twist(odom.v, odom.omega), result, pos, std, radii, sw)
 
     def certify(self, command: Twist, ctx: PlanningContext) -> Twist:

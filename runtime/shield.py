@@ -15,9 +15,10 @@ midpoint sub-steps per check step `check_dt`; the footprint is a disc of radius
 Obstacle model (what must stay clear, exactly):
   (a) static points: every point p of `points` must stay at distance >= R from the centre;
       while the robot closes on p (its speed toward p > 0.01 m/s) with p within
-      ±approach_half_angle of the direction of travel, at distance >= R + untracked_approach·t
-      (p may be a person the tracker has not confirmed, walking in: the robot must stand still
-      before they could reach it, or it would have driven into them).
+      ±approach_half_angle of the direction of travel, at distance >= R + untracked_approach·
+      (t + points_age) (p may be a person the tracker has not confirmed, walking in: the robot
+      must stand still before they could reach it, or it would have driven into them; they
+      have been walking since the depth frame was taken, `points_age` ago).
   (b) tracks: track i's predicted centre moves piecewise linearly through `track_positions[i, k]`
       at times k·track_dt (beyond the last given time it continues with its last segment's
       velocity), its std likewise. A person may stop at any moment (one walking away can turn
@@ -154,6 +155,7 @@ class ShieldWorld:
     blind_range: np.ndarray | None = None
     bin_width: float = 0.0  # rad; 0 = inferred from bin_angles spacing
     track_ids: tuple[int, ...] | None = None
+    points_age: float = 0.0  # s since the depth frame the points were last seen in
 
 
 @dataclass(frozen=True)
@@ -298,7 +300,8 @@ _CLOSING_M_S = 0.01  # speed toward a point above which the robot counts as clos
 def _approach_margin(cfg: ShieldConfig, c: np.ndarray, heading: np.ndarray, vs: np.ndarray,
                      ts: np.ndarray, q: np.ndarray, d: np.ndarray) -> np.ndarray:
     """(N, Q) extra distance for untracked points (module docs (a)): untracked_approach·t where
-    the robot closes on the point within the front half-angle, else 0."""
+    the robot closes on the point within the front half-angle, else 0. `ts`: times since the
+    points were seen (the depth frame's age included: a person walks on while it is read)."""
     rel_x = q[None, :, 0] - c[:, None, 0]
     rel_y = q[None, :, 1] - c[:, None, 1]
     along = (rel_x * np.cos(heading)[:, None] + rel_y * np.sin(heading)[:, None]) / np.maximum(
@@ -374,7 +377,8 @@ def certify(cmd: Twist, state: Twist, world: ShieldWorld, cfg: ShieldConfig,
     # (a) static points: bounding-box prefilter, then all distances
     pts = wa.points
     if len(pts):
-        reach = R + slack_c + cfg.untracked_approach_m_s * float(ts[-1])
+        age = max(world.points_age, 0.0)
+        reach = R + slack_c + cfg.untracked_approach_m_s * (float(ts[-1]) + age)
         lo_b = c.min(axis=0) - reach
         hi_b = c.max(axis=0) + reach
         near = np.all((pts >= lo_b) & (pts <= hi_b), axis=1)
@@ -387,7 +391,7 @@ def certify(cmd: Twist, state: Twist, world: ShieldWorld, cfg: ShieldConfig,
             floor = np.minimum(ref_gap - slack_c - tol_ref, 0.0)
             outside = d[0] >= R
             approach = (np.where(outside[None, :],
-                                 _approach_margin(cfg, c, pose[:, 2], vs, ts, q, d), 0.0)
+                                 _approach_margin(cfg, c, pose[:, 2], vs, ts + age, q, d), 0.0)
                         if cfg.untracked_approach_m_s > 0.0 else np.zeros_like(d))
             marg = d - R - slack_c - floor - approach
             i, j = np.unravel_index(int(np.argmin(marg)), marg.shape)

@@ -11,11 +11,21 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from sim_stub.emulator_process import EmulatorProcess
 
 STILL_M_S = 0.005
+SCENARIOS = Path(__file__).resolve().parent.parent / "sim_stub" / "scenarios"
+
+
+def empty_room(directory: Path) -> Path:
+    """paper_a's room with nobody in it: `drive` does not avoid people, and one who walks into
+    the robot blinds the camera (DEGRADED, rightly), which is not what these tests are about."""
+    scenario = directory / "paper_a_empty.yaml"
+    scenario.write_text((SCENARIOS / "paper_a.yaml").read_text().replace("count: 8", "count: 0"))
+    return scenario
 
 
 @dataclass

@@ -1,6 +1,6 @@
 """Fault injection on depth, through the real `safemove drive` process against `safemove sim`:
 a proxy on the depth link alters frames the way a failing or lying camera would (valid framing
-and checksum), while the robot drives straight at 0.2 m/s.
+and checksum), while the robot drives straight at 0.2 m/s in an empty room.
 
 Every fault that leaves the robot without trustworthy depth must end with the loop DEGRADED,
 the base commanded to zero and standing still, with a log line naming the cause; a single bad
@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 
 import pytest
-from fault_run import figures, wait_moving, watch
+from fault_run import empty_room, figures, wait_moving, watch
 
 from sim_stub.depth_proxy import DepthFaultProxy
 from sim_stub.emulator_process import EmulatorProcess
@@ -50,7 +50,7 @@ CASES = [
                          ids=[c[0] for c in CASES])
 def test_depth_fault_stops_the_robot_or_is_dropped(safemove, fault_table, tmp_path, label, plan,
                                                    logged, degraded, rejected):
-    with (EmulatorProcess(["paper_a", "--seed", "4", "--fps", "15"],
+    with (EmulatorProcess([str(empty_room(tmp_path)), "--fps", "15"],
                           module="sim_stub.sim_server") as sim,
           DepthFaultProxy(sim.depth_socket, str(tmp_path / "proxy.sock")) as proxy):
         run = drive(safemove, sim, proxy.path)

@@ -3,15 +3,13 @@ emulated base, both over real links (a pty and a Unix socket)."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
+from fault_run import empty_room
 
 from sim_stub.emulator_process import EmulatorProcess
 
 pytestmark = pytest.mark.hil
 
-SCENARIOS = Path(__file__).resolve().parent.parent / "sim_stub" / "scenarios"
 
 
 def sim_args(sim, *extra: str) -> list[str]:
@@ -24,11 +22,7 @@ def sim_args(sim, *extra: str) -> list[str]:
 
 @pytest.fixture
 def sim_without_people(tmp_path):
-    """paper_a's room with nobody in it: `drive` does not avoid people, and one who walks into
-    the robot blinds the camera (DEGRADED, rightly), which is not what this test is about."""
-    scenario = tmp_path / "paper_a_empty.yaml"
-    scenario.write_text((SCENARIOS / "paper_a.yaml").read_text().replace("count: 8", "count: 0"))
-    with EmulatorProcess([str(scenario), "--fps", "15", "--log-depth"],
+    with EmulatorProcess([str(empty_room(tmp_path)), "--fps", "15", "--log-depth"],
                          module="sim_stub.sim_server") as proc:
         yield proc
 

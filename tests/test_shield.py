@@ -367,3 +367,16 @@ def test_a_person_walking_away_may_stop_so_the_robot_keeps_its_distance_from_whe
     beside = world(tracks=away + np.array([0.0, 0.7]), std=np.zeros((1, steps)),
                    radii=np.array([radius]))
     assert certify(Twist(0.3, 0.0), Twist(0.3, 0.0), beside, CFG, LIM).ok
+
+
+def test_an_untracked_point_seen_in_an_old_frame_may_be_a_person_already_closer():
+    """The person behind a point has walked on since the frame was taken: 0.1 s of frame age
+    at 1 m/s is 10 cm the certificate must not count on."""
+    cfg = ShieldConfig()
+    slow = Twist(0.1, 0.0)  # needs 0.22 + 1.0 * 0.2 = 0.42 m from a point ahead, when fresh
+    pts, scan = wall_at(0.46)
+    fresh = world(pts, scan=scan)
+    assert certify(slow, slow, fresh, cfg, LIM).ok
+    old = replace(fresh, points_age=0.1)
+    c = certify(slow, slow, old, cfg, LIM)
+    assert not c.ok and "may be a person" in c.reason
