@@ -2,14 +2,18 @@
 actor (untrained: it proposes arbitrary commands) driving `safemove sim` in scenario (b) for 60 s.
 What is tested is the shield: no collision may be the robot's fault, whatever the actor says.
 
-In scenario (b) the crowd is oblivious: people walk into the robot whether it stands or moves.
+The crowd is made reactive (the people see the robot and avoid it, as the DWA HIL test's). With
+scenario (b)'s shipped oblivious crowd, people walk into the robot whether it stands or moves,
+and one standing or walking slowly at the edge of the camera's view at contact range (33-38°
+from the robot's heading: outside the 87° view, or inside its 0.17 m minimum range) can be
+touched by a robot creeping at 0.04-0.10 m/s: `safemove soak` measured about one such at-fault
+contact per 10 real-time minutes (README, "Long real-time runs"), so a 60 s run with that crowd
+would fail by chance, not by a defect of the process under test. That limit is measured there.
 The sim judges every contact from ground truth at each base tick, also after its first outcome
 has latched, and says who was at fault (sim_stub/world.py): the robot is, if it moved and either
 drove into the person (toward them, within ±45° of its heading) or the person was not coming at
-it. The contacts where the robot moved but a person walked into its side or back are reported
-(`moving`), not failed: with one forward camera no shield can prevent them (see world.py). The
-scenario file is paper_b with its time limit raised, so the world does not time out inside the
-60 s run.
+it. The scenario file is paper_b with its time limit raised, so the world does not time out
+inside the 60 s run.
 """
 
 from __future__ import annotations
@@ -59,7 +63,8 @@ def test_random_actor_drives_60_s_in_scenario_b_with_no_collision_at_fault(tmp_p
     text = (SCENARIOS / "paper_b.yaml").read_text()
     scenario.write_text(text.replace("time_limit_s: 60.0", "time_limit_s: 600.0"))
     log_path = tmp_path / "run.err"
-    with EmulatorProcess([str(scenario), "--fps", "15"], module="sim_stub.sim_server") as sim:
+    with EmulatorProcess([str(scenario), "--fps", "15", "--crowd", "reactive"],
+                         module="sim_stub.sim_server") as sim:
         event = next(e for e in sim.history if e.get("event") == "scenario")
         gx, gy = odom_goal(event)
         args = ["run", "--planner", "safemove", "--model", str(model), "--goal", f"{gx}",
