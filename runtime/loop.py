@@ -66,7 +66,7 @@ class DepthStats:
     missing: int = 0
     last_frame_number: int | None = None
     last_t: float | None = None
-    rejected: dict[str, int] = field(default_factory=dict)
+    rejected: dict[str, int] = field(default_factory=dict)  # the guard's live counts
 
     def take(self, frame: DepthFrame) -> None:
         if self.last_frame_number is not None and frame.frame_number != self.last_frame_number + 1:
@@ -164,8 +164,9 @@ class ControlLoop:
     ) -> None:
         self._cfg = config
         self._depth = depth
-        self.depth_stats = DepthStats() if depth is not None else None
         self._depth_guard = DepthGuard(config.depth.max_future_s)
+        self.depth_stats = (DepthStats(rejected=self._depth_guard.rejected) if depth is not None
+                            else None)
         self.latest_depth: DepthFrame | None = None
         self._perceived: DepthFrame | None = None
         self._world_model = WorldModel(config, calibration.camera, clock)
@@ -237,7 +238,6 @@ class ControlLoop:
             self.depth_stats.take(frame)
             if self._depth_guard.admit(frame, now):
                 self.latest_depth = frame
-        self.depth_stats.rejected = self._depth_guard.rejected
 
     def run(self) -> LoopReport:
         """Run to the end. Exceptions inside a cycle become FAULT (exit 1) with the stop sent by

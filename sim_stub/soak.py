@@ -47,6 +47,13 @@ def rss_mb(pid: int) -> float | None:
     return None
 
 
+def last_line(stderr: str) -> str:
+    """The runtime's last stderr line without its own `safemove: error:` prefix: what it said
+    when it refused to start, for one line of ours."""
+    lines = stderr.strip().splitlines()
+    return lines[-1].removeprefix("safemove: error: ") if lines else "no output"
+
+
 def slope_mb_per_h(samples: list[tuple[float, float]], warmup_s: float) -> float | None:
     """Least-squares RSS slope after the warm-up (None with fewer than 3 samples)."""
     pts = np.array([(t, r) for t, r in samples if t >= warmup_s])
@@ -147,5 +154,4 @@ def _wait_running(proc: subprocess.Popen, err_path: Path) -> float:
         if time.monotonic() > deadline:
             break
         time.sleep(0.1)
-    raise UserError(f"soak: the runtime never reached RUNNING; its log:\n"
-                    f"{err_path.read_text()[-2000:]}")
+    raise UserError(f"soak: the runtime never reached RUNNING: {last_line(err_path.read_text())}")

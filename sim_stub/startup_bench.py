@@ -22,7 +22,7 @@ from typing import Any
 
 from runtime.errors import UserError
 from sim_stub.emulator_process import EmulatorProcess
-from sim_stub.soak import rss_mb
+from sim_stub.soak import last_line, rss_mb
 
 READY_TIMEOUT_S = 60.0
 
@@ -38,14 +38,16 @@ def _one_start(cmd: list[str], notify: socket.socket, notify_path: str) -> tuple
     env = {**os.environ, "NOTIFY_SOCKET": notify_path, "PYTHONUNBUFFERED": "1"}
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
+    rss = None
     try:
-        notify.settimeout(READY_TIMEOUT_S)
-        while True:
+        notify.settimeout(0.1)  # short waits: a runtime that refuses to start is seen at once
+        while proc.poll() is None:
+            if time.perf_counter() - t0 > READY_TIMEOUT_S:
+                raise UserError(f"bench startup: no READY=1 within {READY_TIMEOUT_S:g} s")
             try:
                 msg = notify.recv(4096).decode(errors="replace")
             except TimeoutError:
-                raise UserError("bench startup: no READY=1 within"
-                                f" {READY_TIMEOUT_S:g} s") from None
+                continue
             if "READY=1" in msg.split("\n"):
                 ready = time.perf_counter() - t0
                 rss = rss_mb(proc.pid)
@@ -55,7 +57,8 @@ def _one_start(cmd: list[str], notify: socket.socket, notify_path: str) -> tuple
             proc.send_signal(signal.SIGTERM)
         _, err = proc.communicate(timeout=30)
     if rss is None:
-        raise UserError(f"bench startup: the runtime exited before READY:\n{err.decode()[-2000:]}")
+        raise UserError("bench startup: the runtime exited before READY:"
+                        f" {last_line(err.decode(errors='replace'))}")
     return ready, rss
 
 
