@@ -8,11 +8,12 @@ not ray length. `t` is host-monotonic seconds; in playback the recorded stamps a
 from __future__ import annotations
 
 import math
+from collections import Counter
 from typing import Protocol, runtime_checkable
 
 from runtime.types import DepthFrame, DepthIntrinsics
 
-__all__ = ["D435_848x480", "DepthFrame", "DepthIntrinsics", "DepthSource"]
+__all__ = ["CountedDepthSource", "D435_848x480", "DepthFrame", "DepthIntrinsics", "DepthSource"]
 
 
 def _d435_848x480() -> DepthIntrinsics:
@@ -40,3 +41,10 @@ class DepthSource(Protocol):
     def at_end(self) -> bool:
         """True only when a finished recording has delivered its last frame (never for a stall)."""
         ...
+
+
+class CountedDepthSource(DepthSource, Protocol):
+    """A live depth source (D435, simulator link): also counts its events for the run report."""
+
+    counts: Counter[str]
+    """Events by name (frames, stalls, restarts, reconnects, queue overflows, ...)."""

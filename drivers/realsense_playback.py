@@ -33,7 +33,7 @@ class PlaybackDepthSource:
         self.poll_timeout_ms = int(poll_timeout_ms)
         self.intrinsics: DepthIntrinsics | None = None
         self._pipe: rs.pipeline | None = None
-        self._playback = None
+        self._playback: rs.playback | None = None
         self._at_end = False
         self._seen_playing = False
         self._started_at = 0.0
@@ -70,7 +70,10 @@ class PlaybackDepthSource:
         self._started_at = time.monotonic()
 
     def _try_frame(self, timeout_ms: int) -> DepthFrame | None:
-        ok, frames = self._pipe.try_wait_for_frames(timeout_ms)
+        pipe, intrinsics = self._pipe, self.intrinsics
+        if pipe is None or intrinsics is None:  # stopped, or never started
+            return None
+        ok, frames = pipe.try_wait_for_frames(timeout_ms)
         if not ok:
             return None
         df = frames.get_depth_frame()
@@ -78,19 +81,20 @@ class PlaybackDepthSource:
             return None
         depth = np.asanyarray(df.get_data()).copy()
         frame = DepthFrame(depth=depth, t=df.get_timestamp() / 1000.0,
-                           frame_number=int(df.get_frame_number()), intrinsics=self.intrinsics)
+                           frame_number=int(df.get_frame_number()), intrinsics=intrinsics)
         del df, frames
         self.frames_delivered += 1
         return frame
 
     def poll(self) -> DepthFrame | None:
-        if self._pipe is None or self._at_end:
+        playback = self._playback  # set together with _pipe by start(), cleared by stop()
+        if self._pipe is None or playback is None or self._at_end:
             return None
         frame = self._try_frame(self.poll_timeout_ms)
         if frame is not None:
             self._seen_playing = True
             return frame
-        status = self._playback.current_status()
+        status = playback.current_status()
         if status == rs.playback_status.playing:
             self._seen_playing = True
         elif status == rs.playback_status.stopped and (

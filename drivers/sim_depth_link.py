@@ -51,7 +51,7 @@ def encode_frame(frame: DepthFrame) -> tuple[bytes, int]:
     return header + payload, crc
 
 
-def decode_header(raw: bytes) -> tuple[int, float, DepthIntrinsics, int, int]:
+def decode_header(raw: bytes | bytearray) -> tuple[int, float, DepthIntrinsics, int, int]:
     """(frame_number, t, intrinsics, payload_len, crc32) from a header; LinkFormatError if bad."""
     (magic, size, number, t, width, height, fx, fy, cx, cy, unit, _reserved, payload_len,
      crc) = HEADER.unpack(raw)

@@ -243,8 +243,17 @@ def decode_feedback(payload: bytes) -> Feedback:
     base = _FEEDBACK_BASE.unpack_from(payload, 0)
     if len(payload) == FEEDBACK_LEN_NO_IMU - 8:
         return Feedback(*base)
-    imu = _FEEDBACK_IMU.unpack_from(payload, _FEEDBACK_BASE.size)
-    return Feedback(*base, imu[0:3], imu[3:6], imu[6:9], imu[9:12])
+    ax, ay, az, gx, gy, gz, mx, my, mz, roll, pitch, yaw = _FEEDBACK_IMU.unpack_from(
+        payload, _FEEDBACK_BASE.size
+    )
+    cliff, bumper, status, dock_ir, unused, encoder_10, encoder_14, base_time = base
+    return Feedback(
+        cliff, bumper, status, dock_ir, unused, encoder_10, encoder_14, base_time,
+        accel_g=(ax, ay, az),
+        gyro_dps=(gx, gy, gz),
+        mag=(mx, my, mz),
+        rpy_deg=(roll, pitch, yaw),
+    )
 
 
 def encode_feedback(fb: Feedback) -> bytes:
@@ -260,7 +269,9 @@ def encode_feedback(fb: Feedback) -> bytes:
         fb.base_time & 0xFFFFFFFF,
     )
     if fb.accel_g is not None:
-        imu = (*fb.accel_g, *fb.gyro_dps, *fb.mag, *fb.rpy_deg)  # type: ignore[misc]
+        if fb.gyro_dps is None or fb.mag is None or fb.rpy_deg is None:
+            raise TypeError("Feedback IMU fields must be all set or all None")
+        imu = (*fb.accel_g, *fb.gyro_dps, *fb.mag, *fb.rpy_deg)
         payload += _FEEDBACK_IMU.pack(*imu)
     return encode_frame(CMD_FEEDBACK, payload)
 

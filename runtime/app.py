@@ -14,7 +14,7 @@ import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
-from drivers.depth_source import DepthSource
+from drivers.depth_source import CountedDepthSource
 from drivers.spark_link import SparkBaseLink
 from runtime.config import DEFAULT_CALIBRATION_PATH, DepthConfig, LoadedConfig
 from runtime.errors import ConfigError
@@ -50,7 +50,10 @@ def on_stop_signals(stop: Callable[[str], None]) -> Iterator[None]:
     previous = {sig: signal.signal(sig, handler) for sig in STOP_SIGNALS + FATAL_SIGNALS}
     enabled_here = not faulthandler.is_enabled()
     # installed over ours: ABRT dumps the stacks to the process's own stderr, then runs `handler`
-    faulthandler.enable(file=sys.__stderr__)
+    # (sys.__stderr__ is None only if the process started without one: then, as faulthandler
+    # itself does for file=None, sys.stderr)
+    stderr = sys.__stderr__
+    faulthandler.enable(file=stderr if stderr is not None else sys.stderr)
     try:
         yield
     finally:
@@ -71,7 +74,7 @@ def exit_by_fatal_signal() -> None:
         os.kill(os.getpid(), sig)
 
 
-def open_depth_source(cfg: DepthConfig, source: str) -> DepthSource | None:
+def open_depth_source(cfg: DepthConfig, source: str) -> CountedDepthSource | None:
     """The configured depth source, not yet started (None for `none`)."""
     if cfg.source == "none":
         return None

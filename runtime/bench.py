@@ -94,29 +94,37 @@ def bench_sim(frames: int, steps: int) -> dict[str, Any]:
 
 
 def bench_perception(frames: int) -> dict[str, Any]:
-    """Per-stage p50/p99 (ms) of the world model on rendered 848×480 depth of scenario paper_d
-    (20 people + clutter, robot moving): perception, obstacle memory, tracking, and the
-    odometry EKF for the 2–3 wheel increments of one 20 Hz cycle, at decimation 1, 2 and 4.
-    Tracking gets the frame's points as the memory binned them, one per cell, as in the loop. The floor
-    check (every 10th frame) runs after the command in the loop, so it is reported on its own.
+    """Per-stage p50/p99 (ms) of the sensing half of `Pipeline.step` on rendered 848×480 depth
+    of scenario paper_d (20 people + clutter, robot moving at 0.2 m/s, 0.15 rad/s): the
+    odometry EKF for the 3 wheel increments of one cycle, perception, obstacle memory and
+    tracking, at decimation 1, 2 and 4, one cycle per frame (the job holds). The floor check
+    (every 10th frame) runs after the command in the loop, so it is reported on its own.
     `total_p99` is the p99 of the per-frame sum, against the 2 ms target."""
     import time
+    from dataclasses import replace
 
     import numpy as np
 
-    from runtime.config import CameraMount, LimitsConfig
-    from runtime.obstacle_memory import ObstacleMemory
-    from runtime.odometry_ekf import OdometryEKF
-    from runtime.perception import Perception, PerceptionConfig
-    from runtime.tracking import Tracker
+    from runtime.config import Calibration, CameraMount, Config, LimitsConfig
+    from runtime.drive import HoldJob
+    from runtime.pipeline import CycleInput, Pipeline
     from runtime.types import BaseStatus, CliffSensor, Proximity, Twist, WheelIncrement
     from sim_stub.recording import simulated_frames
     from sim_stub.scenario import load_scenario
 
-    rendered = list(simulated_frames(load_scenario("paper_d"), frames, 15.0, Twist(0.2, 0.15),
+    motion = Twist(0.2, 0.15)
+    rendered = list(simulated_frames(load_scenario("paper_d"), frames, 15.0, motion,
                                      CameraMount(), LimitsConfig(), noise=True))
-    increment = WheelIncrement(0.0, 0.02, 0.004, 0.0042, 0.03, None, CliffSensor(0),
-                               Proximity(0), BaseStatus(0))
+    cal = Calibration()
+    dt = rendered[1].t - rendered[0].t if len(rendered) > 1 else 1.0 / 15.0
+    half_track = 0.5 * motion.omega * cal.odometry.axle_length_m
+
+    def increments(t: float) -> tuple[WheelIncrement, ...]:
+        """The wheel travel since the previous frame, in three increments as the base sends."""
+        step = dt / 3
+        d_left, d_right = (motion.v - half_track) * step, (motion.v + half_track) * step
+        return tuple(WheelIncrement(t - (2 - i) * step, step, d_left, d_right, motion.omega, None,
+                                    CliffSensor(0), Proximity(0), BaseStatus(0)) for i in range(3))
 
     def pct(samples: list[float]) -> dict[str, float]:
         p50, p99 = np.percentile(np.asarray(samples) * 1000.0, [50, 99])
@@ -124,35 +132,25 @@ def bench_perception(frames: int) -> dict[str, Any]:
 
     result: dict[str, Any] = {"bench": "perception", "resolution": "848x480", "frames": frames,
                               "people": 20, "target_total_p99_ms": 2.0}
+    stages = ("odometry", "perception", "memory", "tracking")
     gc.collect()
     gc.disable()  # as in the control loop: collections run between cycles, never inside one
     for decimation in (1, 2, 4):
-        perception = Perception(rendered[0].intrinsics, CameraMount(),
-                                PerceptionConfig(decimation=decimation))
-        memory, tracker, ekf = ObstacleMemory(), Tracker(), OdometryEKF(0.266)
-        times: dict[str, list[float]] = {k: [] for k in ("perception", "memory", "tracking",
-                                                          "fusion", "total", "floor_check")}
+        base = Config()
+        cfg = replace(base, perception=replace(base.perception, decimation=decimation))
+        pipeline = Pipeline(cfg, cal, HoldJob())
+        times: dict[str, list[float]] = {k: [] for k in (*stages, "total", "floor_check")}
         for k, frame in enumerate(rendered):
-            pose = (0.2 * frame.t, 0.0, 0.15 * frame.t)
+            out = pipeline.step(CycleInput(frame.t, increments(frame.t), (frame,), frame.t))
             t0 = time.perf_counter()
-            out = perception.process(frame.depth)
-            t1 = time.perf_counter()
-            memory.update_from(out, pose, frame.t, view=perception.view)
-            t2 = time.perf_counter()
-            tracker.update(memory.frame_points, frame.t, sensor_pose=np.array(pose))
-            t3 = time.perf_counter()
-            for _ in range(3):
-                ekf.step(increment)
-            t4 = time.perf_counter()
-            if perception.floor_check_due:  # in the loop: after the command, in the slack
-                perception.check_floor()
-                times["floor_check"].append(time.perf_counter() - t4)
+            if pipeline.check_floor() is not None:  # in the loop: after the command, in the slack
+                times["floor_check"].append(time.perf_counter() - t0)
             if k == 0:
                 continue  # first call pays one-off allocations
-            for key, dt in (("perception", t1 - t0), ("memory", t2 - t1), ("tracking", t3 - t2),
-                            ("fusion", t4 - t3), ("total", t4 - t0)):
-                times[key].append(dt)
-        result[f"decimation_{decimation}"] = {key: pct(v) for key, v in times.items()}
+            for key in stages:
+                times[key].append(out.stage_s[key])
+            times["total"].append(sum(out.stage_s[key] for key in stages))
+        result[f"decimation_{decimation}"] = {key: pct(v) for key, v in times.items() if v}
         gc.collect()
     gc.enable()
     return result

@@ -14,7 +14,7 @@ from typing import Any
 
 from runtime.errors import ConfigError
 from runtime.schema import load_yaml_file
-from runtime.types import STOP, Odometry, Twist
+from runtime.types import STOP, Odometry, Prepared, Twist
 
 STILL_V = 0.005  # m/s
 STILL_OMEGA = 0.01  # rad/s
@@ -91,6 +91,13 @@ class DriveJob:
         self._settle(now, odom)
         return STOP
 
+    def prepare(self, now: float, odom: Odometry, world: object = None) -> Prepared:
+        return Prepared(self.step(now, odom))
+
+    def decide(self, prepared: Prepared, action: object = None) -> Twist:
+        """The script's twist for the cycle `prepare` saw."""
+        return prepared.context
+
     def pause(self) -> None:
         """The loop left RUNNING: the next RUNNING cycle starts a new time base. The last RUNNING
         cycle's command was held for its period before the pause: that period counts."""
@@ -124,7 +131,10 @@ class HoldJob:
     name = "hold"
     finished = False
 
-    def step(self, now: float, odom: Odometry, world: object = None) -> Twist:
+    def prepare(self, now: float, odom: Odometry, world: object = None) -> Prepared:
+        return Prepared(STOP)
+
+    def decide(self, prepared: Prepared, action: object = None) -> Twist:
         return STOP
 
     def pause(self) -> None:

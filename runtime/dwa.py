@@ -273,7 +273,8 @@ def _distance_grid(points: np.ndarray, lo: np.ndarray, shape: tuple[int, int], c
         return None
     occ = np.full(shape, 255, np.uint8)
     occ[ij[:, 0], ij[:, 1]] = 0  # index [ix, iy]
-    edt = cv2.distanceTransform(occ, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    # float32 already (no copy): asarray only gives the type checker the dtype cv2's stub lacks
+    edt = np.asarray(cv2.distanceTransform(occ, cv2.DIST_L2, cv2.DIST_MASK_PRECISE), np.float32)
     edt *= cell
     edt -= cell * math.sqrt(2.0)
     return edt
@@ -518,6 +519,8 @@ def plan(
     steps = prep.steps
     if obs_pos is None:
         obs_pos, obs_radius = np.zeros((0, steps, 2)), np.zeros((0, steps))
+    elif obs_radius is None:
+        raise ValueError("plan: obs_pos given without obs_radius")
     ev = _Evaluator(cfg, lim, prep, goal, obs_pos, obs_radius)
     coarse = prep.coarse
     blocks = interleaved_blocks(len(coarse), cfg.block_samples)

@@ -15,7 +15,7 @@ from typing import Any
 from runtime.config import Config
 from runtime.planning_step import PlanningStep
 from runtime.stall_recovery import StallRecovery
-from runtime.types import STOP, Odometry, Twist
+from runtime.types import STOP, Odometry, Prepared, Twist
 from runtime.world_model import WorldState
 
 
@@ -40,13 +40,20 @@ class DWAJob:
     def pause(self) -> None:
         """Nothing to pause: each cycle plans from the present."""
 
-    def step(self, now: float, odom: Odometry, world: WorldState | None) -> Twist:
+    def prepare(self, now: float, odom: Odometry, world: WorldState | None) -> Prepared:
         plan_goal = (None if world is None
                      else self._recovery.planning_goal(now, odom, world, self._step.goal))
-        ctx = self._step.prepare(now, odom, world, plan_goal)
+        return Prepared(self._step.prepare(now, odom, world, plan_goal))
+
+    def decide(self, prepared: Prepared, action: object = None) -> Twist:
+        """DWA's best sample through the shield (DWA is its own actor: `action` is unused)."""
+        ctx = prepared.context
         if ctx is None:
             return STOP
         return self._step.certify(Twist(*map(float, ctx.dwa.best)), ctx)
+
+    def step(self, now: float, odom: Odometry, world: WorldState | None) -> Twist:
+        return self.decide(self.prepare(now, odom, world))
 
     def summary(self) -> dict[str, Any]:
         return {**self._step.summary(), "stall_escapes": self._recovery.escapes}

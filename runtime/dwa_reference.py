@@ -64,8 +64,9 @@ def plan_reference(cfg: DWAConfig, lim: LimitsConfig, v0: float, omega0: float, 
         static_floor = min(grid[ix][iy] - prep.r_eff, 0.0)
     vs, ws = (axis.tolist() for axis in grid_axes(cfg, prep.window))
 
-    samples, raws = [], {"heading": [], "clearance": [], "velocity": [], "density": []}
-    admissible = []
+    samples: list[tuple[float, float]] = []
+    raws: dict[str, list[float]] = {"heading": [], "clearance": [], "velocity": [], "density": []}
+    admissible: list[bool] = []
     for v in vs:
         for w in ws:
             traj = _trajectory(v, w, cfg.dt, steps)
@@ -133,7 +134,7 @@ def plan_reference(cfg: DWAConfig, lim: LimitsConfig, v0: float, omega0: float, 
     return ReferenceResult(
         samples=np.array(samples), terms={k: np.array(a) for k, a in terms.items()},
         raw={k: np.array(a) for k, a in raws.items()}, total=np.array(total),
-        admissible=np.array(admissible), best_index=best, best=tuple(best_vw),
+        admissible=np.array(admissible), best_index=best, best=best_vw,
     )
 
 

@@ -1,8 +1,10 @@
-"""The control loop: the one place with timing, I/O and the safety state machine.
+"""The control loop: the rate keeper, the device I/O and the safety state machine around
+`Pipeline.step`.
 
-Each cycle: drain base feedback → odometry → health check → the job's target (only while
-RUNNING) → NaN guard → limits → base. INIT → RUNNING ⇄ DEGRADED → STOPPED | FAULT.
-Stages are pure functions; this module owns the clock and calls them.
+Each cycle: drain base feedback and depth → `Pipeline.step` (odometry, world model, health,
+the job, NaN guard, limits) → base. A cycle the pipeline holds is a DEGRADED cycle.
+INIT → RUNNING ⇄ DEGRADED → STOPPED | FAULT. The clock and the wait between cycles are
+injected, so a test steps the loop on simulated time without sleeping.
 """
 
 from __future__ import annotations
@@ -18,15 +20,12 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 from runtime.config import Calibration, Config
-from runtime.depth_guard import DepthGuard
 from runtime.errors import DeviceError
-from runtime.limits import apply_limits
-from runtime.odometry_ekf import OdometryEKF
-from runtime.pose_history import PoseHistory
+from runtime.pipeline import PIPELINE_STAGES, CycleInput, Job, Pipeline
 from runtime.sdnotify import SystemdNotifier
 from runtime.timing import RateKeeper, RingStats
 from runtime.types import STOP, DepthFrame, Odometry, Twist, WheelIncrement
-from runtime.world_model import WorldModel, WorldState
+from runtime.world_model import WorldState
 
 log = logging.getLogger("safemove.loop")
 
@@ -77,26 +76,7 @@ class DepthStats:
         self.last_t = frame.t
 
 
-class Job(Protocol):
-    """What the loop runs: picks the target twist each RUNNING cycle."""
-
-    name: str
-
-    @property
-    def finished(self) -> bool: ...
-
-    def step(self, now: float, odom: Odometry, world: WorldState | None) -> Twist: ...
-
-    def pause(self) -> None:
-        """The loop left RUNNING; time until it is back must not count as the job's time."""
-
-    def summary(self) -> dict[str, Any]: ...
-
-
-STAGES = (
-    "base_read", "depth_read", "odometry", "perception", "memory", "tracking", "job", "limits",
-    "base_write", "cycle", "floor_check", "gc",
-)
+STAGES = ("base_read", "depth_read", *PIPELINE_STAGES, "base_write", "cycle", "floor_check", "gc")
 GC_FULL_EVERY = 600  # cycles between full collections (30 s at 20 Hz)
 
 
@@ -161,32 +141,41 @@ class ControlLoop:
         clock: Callable[[], float] = time.monotonic,
         max_cycles: int | None = None,
         depth: DepthInput | None = None,
+        wait: Callable[[float], bool] | None = None,
     ) -> None:
+        """`wait(seconds)`: sleep, True when a stop was requested meanwhile (default: on the
+        loop's stop event, so a signal handler ends the sleep at once)."""
         self._cfg = config
         self._depth = depth
-        self._depth_guard = DepthGuard(config.depth.max_future_s)
-        self.depth_stats = (DepthStats(rejected=self._depth_guard.rejected) if depth is not None
-                            else None)
-        self.latest_depth: DepthFrame | None = None
-        self._perceived: DepthFrame | None = None
-        self._world_model = WorldModel(config, calibration.camera, clock)
-        self.world: WorldState | None = None
+        self._pipeline = Pipeline(config, calibration, job, depth=depth is not None, clock=clock)
+        self.depth_stats = (DepthStats(rejected=self._pipeline.depth_guard.rejected)
+                            if depth is not None else None)
         self._floor_ok: bool | None = None
-        self._odom_filter = OdometryEKF(calibration.odometry.axle_length_m, config.odometry)
-        self._poses = PoseHistory()
         self._link = link
         self._job = job
         self._notifier = notifier
         self._clock = clock
         self._max_cycles = max_cycles
         self._stop = threading.Event()
+        self._wait = wait if wait is not None else self._stop.wait
         self._stop_reason = ""
         self.state = State.INIT
         self.timings = RingStats((*STAGES, "period_jitter"))
         self._ch = {name: self.timings.channel(name) for name in self.timings.names}
         self._transitions: list[tuple[float, str, str]] = []
-        self._rate = RateKeeper(1.0 / config.loop.control_hz, clock, self._stop)
-        self.odometry = Odometry()
+        self._rate = RateKeeper(1.0 / config.loop.control_hz, clock, self._wait)
+
+    @property
+    def odometry(self) -> Odometry:
+        return self._pipeline.odom
+
+    @property
+    def world(self) -> WorldState | None:
+        return self._pipeline.world
+
+    @property
+    def latest_depth(self) -> DepthFrame | None:
+        return self._pipeline.latest_depth
 
     def request_stop(self, reason: str) -> None:
         """Ask the loop to stop at once; safe to call from a signal handler."""
@@ -213,7 +202,7 @@ class ControlLoop:
             self._depth is not None and self.latest_depth is None
         ):
             now = self._clock()
-            self._drain_depth()
+            self._pipeline.admit(self._drain_depth(), now)
             if now > deadline:
                 if self._link.last_feedback_time is None:
                     raise DeviceError(
@@ -225,19 +214,19 @@ class ControlLoop:
                     f"depth source '{self._cfg.depth.source}': no frame within {timeout:g} s"
                 )
             self._link.set_command(STOP, now)
-            if self._stop.wait(period):
+            if self._wait(period):
                 return False
         return True
 
-    def _drain_depth(self) -> None:
-        """Take every frame that arrived; the newest is what the stages see."""
+    def _drain_depth(self) -> list[DepthFrame]:
+        """Every frame that arrived, counted."""
+        frames: list[DepthFrame] = []
         if self._depth is None or self.depth_stats is None:
-            return
-        now = self._clock()
+            return frames
         while (frame := self._depth.poll()) is not None:
             self.depth_stats.take(frame)
-            if self._depth_guard.admit(frame, now):
-                self.latest_depth = frame
+            frames.append(frame)
+        return frames
 
     def run(self) -> LoopReport:
         """Run to the end. Exceptions inside a cycle become FAULT (exit 1) with the stop sent by
@@ -282,9 +271,7 @@ class ControlLoop:
     def _run_cycles(self, period: float, counters: dict[str, int]) -> None:
         cfg = self._cfg
         clock, ch, rec, rate = self._clock, self._ch, self.timings.record, self._rate
-        odom = self.odometry
-        command = STOP
-        hazard: str | None = None
+        pipeline = self._pipeline
         gc.collect()
         gc.freeze()  # start-up objects never need scanning again
         gc.disable()  # collections run between cycles, below, never in the middle of one
@@ -303,43 +290,22 @@ class ControlLoop:
             increments = self._link.poll()
             t1 = clock()
             rec(ch["base_read"], t1 - t0)
-            self._drain_depth()
-            t_depth = clock()
-            rec(ch["depth_read"], t_depth - t1)
-            t1 = t_depth
-            for inc in increments:
-                odom = self._odom_filter.step(inc)
-                self._poses.add(odom)
-                hazard = inc.hazard if cfg.loop.stop_on_cliff else None  # the latest frame decides
-            self.odometry = odom
+            frames = self._drain_depth()
             t2 = clock()
-            rec(ch["odometry"], t2 - t1)
-            if self.latest_depth is not None and self.latest_depth is not self._perceived:
-                self._update_world(self.latest_depth, odom)
-                t2 = clock()
-
-            why = self._degraded_reason(t2, hazard)
-            if why is None:
+            rec(ch["depth_read"], t2 - t1)
+            out = pipeline.step(CycleInput(t2, increments, frames, self._link.last_feedback_time))
+            for stage, seconds in out.stage_s.items():
+                rec(ch[stage], seconds)
+            if out.hold is None:
                 self._set_state(State.RUNNING, t2, "inputs fresh")
-                target = self._job.step(t2, odom, self.world)
             else:
-                if self.state is not State.DEGRADED:
-                    self._job.pause()
-                self._set_state(State.DEGRADED, t2, why)
+                self._set_state(State.DEGRADED, t2, out.hold)
                 counters["degraded"] += 1
-                target = STOP
-            if not target.is_finite():
+            if out.nonfinite is not None:
                 counters["nonfinite"] += 1
-                log.error("non-finite command %r from %s: safe stop this cycle", target, self._job.name)
-                target = STOP
-            t3 = clock()
-            rec(ch["job"], t3 - t2)
-
-            command = apply_limits(target, command, period, cfg.limits)
+                log.error("%s: safe stop this cycle", out.nonfinite)
             t4 = clock()
-            rec(ch["limits"], t4 - t3)
-
-            self._link.set_command(command, t4)
+            self._link.set_command(out.command, t4)
             t5 = clock()
             rec(ch["base_write"], t5 - t4)
             rec(ch["cycle"], t5 - t0)
@@ -367,18 +333,10 @@ class ControlLoop:
             rec(ch["gc"], clock() - t5)
             rate.sleep()
 
-    def _update_world(self, frame: DepthFrame, odom: Odometry) -> None:
-        """The world model on the newest frame (older undrained ones are only counted: a planner
-        wants the present, not a backlog), placed from where the robot was at its stamp."""
-        self._perceived = frame
-        self.world = self._world_model.update(frame, odom, self._poses.at(frame.t, odom))
-        for stage, seconds in self._world_model.stage_s.items():
-            self.timings.record(self._ch[stage], seconds)
-
     def _check_floor(self) -> None:
         """Health check of the camera's calibration, run in the slack after the command: it
         never delays one. Logged when the verdict changes."""
-        verdict = self._world_model.check_floor()
+        verdict = self._pipeline.check_floor()
         if verdict is None:
             return
         if verdict.ok is not None and verdict.ok != self._floor_ok:
@@ -391,23 +349,6 @@ class ControlLoop:
             else:
                 log.warning("the floor is not where the calibration puts it (tilt %.1f°, height"
                             " %.3f m): has the camera moved?", verdict.tilt_deg, verdict.height_m)
-
-    def _degraded_reason(self, now: float, hazard: str | None) -> str | None:
-        if hazard is not None:
-            return hazard
-        last = self._link.last_feedback_time
-        age = now - last if last is not None else float("inf")
-        if age > self._cfg.loop.feedback_max_age_s:
-            return f"base feedback stale ({age * 1000:.0f} ms old)"
-        if self._depth is not None:
-            last_depth = self.latest_depth.t if self.latest_depth is not None else -float("inf")
-            if now - last_depth > self._cfg.depth.max_age_s:
-                return f"depth stale ({(now - last_depth) * 1000:.0f} ms old)"
-            seen = self.world.valid_fraction if self.world is not None else 1.0
-            if seen < self._cfg.depth.min_valid_fraction:
-                return (f"depth blind ({100 * seen:.1f} % of pixels valid, fewer than"
-                        f" {100 * self._cfg.depth.min_valid_fraction:g} %)")
-        return None
 
     def _log_stats(self, counters: dict[str, int], rate: RateKeeper) -> None:
         """The periodic statistics line: per-cycle events are counted here, not logged one by

@@ -3,19 +3,27 @@ how its action maps back to a twist. Defined once here; training, export and the
 
 An `ObsSpec` is an ordered list of feature blocks plus the action mapping, versioned and stored
 as JSON (in the ONNX file's metadata by `safemove export`). Every feature is a float32 in a
-fixed range (`ObsSpec.bounds()`), so a policy never sees raw metres:
+fixed range (`ObsSpec.bounds()`), so a policy never sees raw metres. The builder clips every
+feature into its range (the training observation space and the export's parity sampling are that
+box); a NaN input stays NaN, so the runtime's non-finite check still sees it and brakes:
 
 | block      | features (in this order)                                  | range     |
 |------------|-----------------------------------------------------------|-----------|
 | `goal`     | min(distance / distance_max_m, 1), sin(bearing), cos(bearing) | [0,1], [-1,1] |
 | `velocity` | v, ω of odometry, normalised like an action (see below)    | [-1, 1]   |
 | `scan`     | `bins` free ranges over `span_deg`, right to left: min(r, range_max_m) / range_max_m; a bin with no obstacle return is 1; a bin that is unknown, or that the camera does not cover, is 0 (near/occupied, never free) | [0, 1] |
-| `dwa`      | DWA's best (v, ω) normalised like an action; `path_points` (x, y) of its path in base_link / path_scale_m (points at equal time steps, the last at the horizon); its heading, clearance, velocity, density terms (normalised by DWA to [0, 1]) | [-1,1], [-1,1], [0,1] |
+| `dwa`      | DWA's best (v, ω) normalised like an action; `path_points` (x, y) of its path in base_link / path_scale_m (points at equal time steps, the last at the horizon); its heading, clearance, velocity, density terms (each divided by DWA's scale σ, clipped to [0, 1]) | [-1,1], [-1,1], [0,1] |
 | `corridor` | left free widths of the `samples` corridor samples / width_max_m, then the right ones | [0, 1] |
 
 Goal bearing and all positions are in base_link (x forward, y left). Velocities are normalised
 with the action mapping's own box: v ↦ 2(v − v_min)/(v_max − v_min) − 1, ω ↦ ω/ω_max, clipped,
 so a feature and an action that mean the same speed have the same value.
+
+Where a value can leave its range, the clip decides: the DWA density term is unbounded above
+(its scale σ, density_scale, is the density that counts as 1, e.g. two obstacles at an average
+0.5 m; more or nearer obstacles exceed it), so it reads 1 from σ up; a reversing sample's
+velocity term (v / σ < 0, only where the limits allow v < 0) reads 0; a negative range reads 0;
+and range_max_m · (1 / range_max_m) rounding above 1 in float32 (e.g. range_max_m = 1.7) reads 1.
 
 Action mapping: the model outputs a ∈ [output_low, output_high]² (default [−1, 1]²; a
 stable-baselines3 export outputs its action space's box), clipped to it, then mapped linearly
@@ -320,11 +328,13 @@ class ObservationBuilder:
     Inputs: the goal in base_link, odometry's (v, ω), and, where the spec's blocks need them,
     the world (anything with `scan`, `unknown`, `bin_angles`: runtime.loop.WorldState), the DWA
     result (runtime.dwa.DWAResult) and the corridor (runtime.corridor.Corridor).
+    Every feature of the result lies in `spec.bounds()` or is NaN (a NaN input stays NaN).
     """
 
     def __init__(self, spec: ObsSpec) -> None:
         self.spec = spec
         self.vector = np.zeros(spec.size, dtype=F32)
+        self._lo, self._hi = spec.bounds()
         self._slices = {kind: slice(a, b) for kind, a, b in spec.layout()}
         self._scan_angles: np.ndarray | None = None
         self._scan_mask: np.ndarray | None = None  # (spec bins, perception bins) overlap
@@ -361,6 +371,8 @@ class ObservationBuilder:
                                      f" {len(corridor.left)}")
                 np.clip(np.asarray(corridor.left) / block.width_max_m, 0.0, 1.0, out=o[:k])
                 np.clip(np.asarray(corridor.right) / block.width_max_m, 0.0, 1.0, out=o[k:])
+        # the contract, in place (no temporaries): np.clip keeps NaN
+        np.clip(out, self._lo, self._hi, out=out)
         return out
 
     def _dwa(self, block: DWABlock, dwa: Any, o: np.ndarray) -> None:
@@ -372,6 +384,7 @@ class ObservationBuilder:
         rows = (np.arange(1, k + 1) * steps) // k - 1
         np.clip(path[rows, :2].reshape(-1) / block.path_scale_m, -1.0, 1.0, out=o[2:2 + 2 * k])
         i = dwa.best_index
+        # the terms over their scale σ; build() clips them to [0, 1] (density exceeds σ)
         o[2 + 2 * k:] = (dwa.heading[i], dwa.clearance[i], dwa.velocity[i], dwa.density[i])
 
     def _scan(self, block: ScanBlock, world: Any, o: np.ndarray) -> None:
@@ -389,7 +402,7 @@ class ObservationBuilder:
         tmp[~mask] = np.inf
         np.min(tmp, axis=1, out=o)
         o[np.isinf(o)] = 0.0  # a spec bin the camera does not cover is unseen, never free
-        o *= F32(1.0 / block.range_max_m)
+        o *= F32(1.0 / block.range_max_m)  # build() clips to [0, 1]: r < 0, float32 rounding
 
 
 def _scan_overlap(block: ScanBlock, angles: np.ndarray) -> np.ndarray:

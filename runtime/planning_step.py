@@ -99,6 +99,7 @@ class PlanningStep:
         self.inadmissible = 0
         self.interventions: Counter[str] = Counter()
         self._last_kind = "passed"
+        self.last_intervened = False
 
     def prepare(self, now: float, odom: Odometry, world: WorldState | None,
                 plan_goal: np.ndarray | None = None) -> PlanningContext | None:
@@ -140,6 +141,7 @@ class PlanningStep:
                           ctx.shield_world, self._cfg.limits, self._cfg.shield,
                           deadline=self._deadline(self._cfg.shield.candidate_budget_s),
                           now=self._clock)
+        self.last_intervened = decision.intervened
         if decision.intervened:
             self.interventions[decision.kind] += 1
             if decision.kind != self._last_kind:  # the count is in the loop's statistics line

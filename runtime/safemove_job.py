@@ -25,7 +25,7 @@ from runtime.errors import ConfigError, UserError
 from runtime.obs_spec import ObservationBuilder, ObsSpec
 from runtime.planning_step import PlanningContext, PlanningStep
 from runtime.policy import Policy
-from runtime.types import STOP, Odometry, Twist
+from runtime.types import STOP, Odometry, Prepared, Twist
 from runtime.world_model import WorldState
 
 log = logging.getLogger("safemove.policy")
@@ -53,21 +53,27 @@ class SpecObserver:
 
 
 class SafeMoveJob:
-    """Drive to a goal in the odom frame with the TD3 actor, every command through the shield."""
+    """Drive to a goal in the odom frame with the TD3 actor, every command through the shield.
+    Without a `policy` the action comes from outside each cycle (`decide(prepared, action)`:
+    the training environment's agent)."""
 
     name = "safemove"
 
-    def __init__(self, goal_odom: tuple[float, float], config: Config, policy: Policy,
-                 clock: Callable[[], float] | None) -> None:
+    def __init__(self, goal_odom: tuple[float, float], config: Config, policy: Policy | None,
+                 clock: Callable[[], float] | None, spec: ObsSpec | None = None) -> None:
         self._planning = PlanningStep(goal_odom, config, clock, "policy")
         self._policy = policy
-        spec = policy.spec
+        if spec is None:
+            if policy is None:
+                raise ValueError("SafeMoveJob needs a policy or a spec")
+            spec = policy.spec
         self._spec = spec
         steps = max(1, round(config.dwa.horizon_s / config.dwa.dt))
         dwa_block = spec.block("dwa")
         if dwa_block is not None and dwa_block.path_points > steps:
+            source = policy.path if policy is not None else "the actor"
             raise ConfigError(
-                f"{policy.path}: its spec '{spec.name}' takes {dwa_block.path_points} DWA path"
+                f"{source}: its spec '{spec.name}' takes {dwa_block.path_points} DWA path"
                 f" points, but the DWA rolls out only {steps} steps (dwa.horizon_s / dwa.dt)")
         self._observer = SpecObserver(spec)
         self.nonfinite: Counter[str] = Counter()
@@ -77,25 +83,51 @@ class SafeMoveJob:
     def finished(self) -> bool:
         return self._planning.finished
 
+    @property
+    def reached(self) -> bool:
+        return self._planning.reached
+
+    @property
+    def shield_changed(self) -> bool:
+        """The shield replaced the last decided command."""
+        return self._planning.last_intervened
+
     def pause(self) -> None:
         """Nothing to pause: each cycle decides from the present."""
 
-    def step(self, now: float, odom: Odometry, world: WorldState | None) -> Twist:
+    def prepare(self, now: float, odom: Odometry, world: WorldState | None) -> Prepared:
+        """DWA, the corridor and the observation; no context (hold still) when the goal is
+        reached, there is no world yet, or odometry or the observation is not finite."""
         if not all(map(math.isfinite, (odom.x, odom.y, odom.theta, odom.v, odom.omega))):
-            return self._safe_stop("odometry", f"non-finite odometry {odom}")
+            self._safe_stop("odometry", f"non-finite odometry {odom}")
+            return Prepared()
         ctx = self._planning.prepare(now, odom, world)
         if ctx is None or world is None:
-            return STOP
+            return Prepared()
         obs = self._observer.observe(ctx, odom, world)
         if not np.all(np.isfinite(obs)):
             names = self._spec.names()
             bad = [names[i] for i in np.flatnonzero(~np.isfinite(obs))[:3]]
-            return self._safe_stop("observation", f"non-finite features {', '.join(bad)}")
-        action = self._policy.act(obs)
+            self._safe_stop("observation", f"non-finite features {', '.join(bad)}")
+            return Prepared()
+        return Prepared(ctx, obs)
+
+    def decide(self, prepared: Prepared, action: np.ndarray | None = None) -> Twist:
+        """The actor's action (this job's policy, or `action` from outside) mapped to a twist,
+        through the shield."""
+        if prepared.context is None or prepared.observation is None:
+            return STOP
+        if action is None:
+            if self._policy is None:
+                raise ValueError("SafeMoveJob without a policy: decide() needs the action")
+            action = self._policy.act(prepared.observation)
         if not np.all(np.isfinite(action)):
-            return self._safe_stop("action", f"non-finite action {action.tolist()}")
+            return self._safe_stop("action", f"non-finite action {np.asarray(action).tolist()}")
         self._last_bad = None
-        return self._planning.certify(self._spec.action.to_twist(action), ctx)
+        return self._planning.certify(self._spec.action.to_twist(action), prepared.context)
+
+    def step(self, now: float, odom: Odometry, world: WorldState | None) -> Twist:
+        return self.decide(self.prepare(now, odom, world))
 
     def _safe_stop(self, kind: str, reason: str) -> Twist:
         """Brake this cycle; log the first cycle of a streak (the count has them all)."""
@@ -106,14 +138,15 @@ class SafeMoveJob:
         return STOP
 
     def summary(self) -> dict[str, Any]:
+        policy = self._policy
         return {
             **self._planning.summary(),
-            "policy": {
-                "model": str(self._policy.path),
+            "policy": None if policy is None else {
+                "model": str(policy.path),
                 "spec": self._spec.name,
                 "features": self._spec.size,
-                "threads": self._policy.threads,
-                "provenance": self._policy.provenance,
+                "threads": policy.threads,
+                "provenance": policy.provenance,
             },
             "nonfinite_safe_stops": dict(self.nonfinite),
         }

@@ -119,7 +119,9 @@ def build(cls: type[T], data: Any, source: str, prefix: str = "") -> T:
         data = {}
     if not isinstance(data, dict):
         raise where.error(f"expected a mapping of keys, got {type(data).__name__}")
-    known = {f.name: f for f in fields(cls)}  # type: ignore[arg-type]
+    if not is_dataclass(cls):
+        raise TypeError(f"{cls!r} is not a schema dataclass")
+    known = {f.name: f for f in fields(cls)}
     for key in data:
         if key not in known:
             hint = difflib.get_close_matches(str(key), known, n=1)
@@ -131,7 +133,7 @@ def build(cls: type[T], data: Any, source: str, prefix: str = "") -> T:
         if name not in data:
             continue
         tp = hints[name]
-        if is_dataclass(tp):
+        if isinstance(tp, type) and is_dataclass(tp):
             values[name] = build(tp, data[name], source, f"{prefix}{name}.")
             continue
         fwhere = _Where(source, f"{prefix}{name}")

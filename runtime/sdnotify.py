@@ -148,13 +148,14 @@ class SystemdNotifier:
         Returns True when the datagram was sent, False when disabled or the send failed (the
         failure is counted and logged, never raised).
         """
-        if self._address is None:
+        address = self._address
+        if address is None:
             return False
         for key in fields:
             if not key or "=" in key or "\n" in key:
                 raise ValueError(f"invalid sd_notify key {key!r}")
         payload = "\n".join(f"{k}={_one_line(v)}" for k, v in fields.items()).encode()
-        return self._send(payload)
+        return self._send(address, payload)
 
     def ready(self, status: str) -> bool:
         """READY=1 plus STATUS: startup is complete and the control loop is running."""
@@ -213,13 +214,13 @@ class SystemdNotifier:
         )
 
     # ------------------------------------------------------------------- internals
-    def _send(self, payload: bytes) -> bool:
+    def _send(self, address: str, payload: bytes) -> bool:
         sock = self._sock
         if sock is None:
             self._record_error(OSError("notify socket is closed or could not be created"))
             return False
         try:
-            sock.sendto(payload, self._address)
+            sock.sendto(payload, address)
         except OSError as exc:  # includes BlockingIOError: never wait on systemd
             self._record_error(exc)
             return False

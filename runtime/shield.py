@@ -417,17 +417,17 @@ def certify(cmd: Twist, state: Twist, world: ShieldWorld, cfg: ShieldConfig,
         gap = _swept_distance(c, p0, tp) - (R + wa.radii + cfg.k_sigma * ts_std)  # (T, N)
         # where a track would overlap the footprint of the robot braking now, it may come no
         # closer than that (see module docs)
-        braking = _swept_distance(ref, p0, tp) - (R + wa.radii + cfg.k_sigma * ts_std)
-        floor = np.minimum(braking - slack_t - tol_ref, 0.0)
+        braking_gap = _swept_distance(ref, p0, tp) - (R + wa.radii + cfg.k_sigma * ts_std)
+        floor = np.minimum(braking_gap - slack_t - tol_ref, 0.0)
         marg = gap - slack_t - floor
         a, k = np.unravel_index(int(np.argmin(marg)), marg.shape)
         best = min(best, (float(marg[a, k]), float(ts[k])))
         if marg[a, k] < 0:
             hit = marg < 0
             first = np.where(hit.any(axis=1), np.argmax(hit, axis=1), len(ts))
-            a = int(np.argmin(first))
-            tbad = float(ts[first[a]])
-            tid = world.track_ids[a] if world.track_ids is not None else a
+            abad = int(np.argmin(first))
+            tbad = float(ts[first[abad]])
+            tid = world.track_ids[abad] if world.track_ids is not None else abad
             failures.append((tbad, f"cmd would reach track {tid} at t={tbad:.2f} s"))
 
     # (c)/(d) unseen space at the lead arc

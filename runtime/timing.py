@@ -6,7 +6,6 @@ so recording a sample in the hot path allocates nothing.
 
 from __future__ import annotations
 
-import threading
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -15,19 +14,21 @@ import numpy as np
 class RateKeeper:
     """Wake at t0 + k·period. After a miss, restart the schedule from now instead of bursting.
 
-    `wait` is interruptible (a threading.Event), so a signal handler that sets the event ends the
-    sleep at once: SIGTERM must reach the base as a stop frame within a fraction of a period.
+    `wait(seconds)` sleeps and returns True when interrupted; on the robot it is a
+    threading.Event's wait, so a signal handler that sets the event ends the sleep at once
+    (SIGTERM must reach the base as a stop frame within a fraction of a period); a test passes
+    one that advances a simulated clock.
     """
 
     def __init__(
         self,
         period_s: float,
         clock: Callable[[], float],
-        interrupt: threading.Event,
+        wait: Callable[[float], bool],
     ) -> None:
         self.period = period_s
         self._clock = clock
-        self._interrupt = interrupt
+        self._wait = wait
         self.deadline = clock() + period_s
         self.misses = 0
 
@@ -37,8 +38,8 @@ class RateKeeper:
         if now > self.deadline:
             self.misses += 1
             self.deadline = now + self.period
-            return not self._interrupt.is_set()
-        if self._interrupt.wait(self.deadline - now):
+            return True
+        if self._wait(self.deadline - now):
             return False
         self.deadline += self.period
         return True

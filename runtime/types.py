@@ -5,6 +5,7 @@ from __future__ import annotations
 import enum
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -132,3 +133,12 @@ class DepthFrame:
     def depth_m(self) -> np.ndarray:
         """Depth in metres as float32 (0 stays 0 = invalid)."""
         return self.depth.astype(np.float32) * np.float32(self.intrinsics.depth_unit_m)
+
+
+@dataclass(frozen=True)
+class Prepared:
+    """A planner job's preparation of one cycle's decision (`Job.prepare`): its own context
+    (None: the job holds still this cycle) and, for a job with an actor, the actor's input."""
+
+    context: Any = None
+    observation: np.ndarray | None = None

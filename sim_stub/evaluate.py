@@ -1,9 +1,9 @@
 """`safemove eval`: seeded episodes per scenario, lock-stepped in one process, scored as in the
 paper's table.
 
-Each episode runs the runtime's own pipeline code on simulated time (`LockstepEpisode`: base
-model → real codec → EKF; rendered D435 → world model; the decision → limits → base), with the
-planner job (the DWA baseline or the SafeMove policy, each through the shield) deciding each
+Each episode runs the runtime's `Pipeline.step` on simulated time (`LockstepEpisode`: the base
+model through the real codec, rendered D435 frames; the cycle's command back to the base), with
+the planner job (the DWA baseline or the SafeMove policy, each through the shield) deciding each
 cycle. Only the serial and socket I/O and the wall clock are left out: the planner budgets (DWA
 refinement, shield candidate search) are their count limits, so an episode is deterministic from
 its seed and does not depend on the machine's load.
@@ -17,7 +17,6 @@ body was not coming at it; `moving` counts every collision where the robot was m
 from __future__ import annotations
 
 import logging
-import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass
@@ -27,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from runtime.config import LoadedConfig, load_config
-from runtime.types import STOP
+from runtime.pipeline import Pipeline
 from sim_stub.lockstep import LockstepEpisode
 from sim_stub.scenario import load_scenario
 
@@ -81,15 +80,15 @@ def make_job(settings: EvalSettings, goal_odom: tuple[float, float], loaded: Loa
 def run_episode(scenario_name: str, seed: int, settings: EvalSettings) -> EpisodeResult:
     """One seeded episode to its judged end (see the module docs)."""
     loaded = load_config(settings.config_path, list(settings.overrides))
-    episode = LockstepEpisode(scenario_name, seed, loaded, settings.fps, settings.noise,
-                              settings.crowd)
+    episode = LockstepEpisode(scenario_name, seed, loaded.config, loaded.calibration,
+                              settings.fps, settings.noise, settings.crowd)
     job = make_job(settings, episode.goal_odom, loaded)
+    pipeline = Pipeline(loaded.config, loaded.calibration, job)
     job_s: list[float] = []
-    while (now := episode.cycle()) is not None:
-        w0 = time.perf_counter()
-        target = STOP if job.finished else job.step(*now)
-        job_s.append(time.perf_counter() - w0)
-        episode.command(target)
+    while (inp := episode.cycle()) is not None:
+        cycle = pipeline.step(inp)
+        job_s.append(cycle.stage_s["job"])
+        episode.send(cycle.command)
         episode.looking = not job.finished
     world = episode.world
     out = world.outcome

@@ -1,15 +1,14 @@
 """Recorded observations for the export's parity check: what the robot's actor will really see.
 
-A lock-stepped simulated run in one process, deterministic for a spec and a seed: the world of
-scenario paper_b (12 oblivious people, 4 static obstacles), depth rendered at 424×240 (the
-D435's half-resolution mode, 4× cheaper than 848×480) every other 20 Hz cycle, then exactly
-the runtime's path: `WorldModel` (perception → obstacle memory → tracking) →
-`PlanningStep.prepare` (goal, track prediction, DWA with its refinement bounded by rounds, not
-by a clock) → `SpecObserver.observe` (corridor + the spec's builder). Odometry is the world's
-ground truth (the evaluation harness, sim_stub/evaluate.py, adds the base and the EKF).
-The robot follows DWA's best command; when an episode ends (goal, collision, time limit) the
-next seed starts. Random observations fill the spec's bounds uniformly; these fill it as a run
-does: mostly free scan bins, small speeds, goal far away, etc.
+Lock-stepped simulated episodes in one process, deterministic for a spec and a seed: scenario
+paper_b (12 oblivious people, 4 static obstacles), depth rendered at 424×240 (the D435's
+half-resolution mode, 4× cheaper than 848×480; with perception decimation 2 the world model
+reads the same grid as at full resolution with decimation 4) at 10 fps, run through the
+runtime's `Pipeline` with the SafeMove job of the spec: every observation the job builds is
+recorded. The robot follows DWA's best command (given as the actor's action, through the shield
+and the limits); when an episode ends (goal, collision, time limit) the next seed starts.
+Random observations fill the spec's bounds uniformly; these fill it as a run does: mostly free
+scan bins, small speeds, goal far away, etc.
 """
 
 from __future__ import annotations
@@ -19,19 +18,14 @@ from dataclasses import replace
 import numpy as np
 
 from drivers.depth_source import D435_848x480
-from runtime.config import Config
-from runtime.obs_spec import ObsSpec
-from runtime.planning_step import PlanningStep
-from runtime.safemove_job import SpecObserver
-from runtime.types import DepthFrame, DepthIntrinsics, Odometry
-from runtime.world_model import WorldModel, WorldState
-from sim_stub.depth_render import DepthRenderer
-from sim_stub.scenario import load_scenario
-from sim_stub.sim_server import BASE_LINK_HEIGHT_M, scene_from
-from sim_stub.world import World
+from runtime.config import Calibration, Config
+from runtime.obs_spec import ActionSpec, ObsSpec
+from runtime.pipeline import Pipeline
+from runtime.safemove_job import SafeMoveJob
+from runtime.types import DepthIntrinsics
+from sim_stub.lockstep import LockstepEpisode
 
-CONTROL_HZ = 20.0
-DEPTH_EVERY = 2  # cycles per depth frame (10 fps)
+FPS = 10.0
 SCENARIO = "paper_b"
 
 
@@ -40,40 +34,36 @@ def _half_resolution(k: DepthIntrinsics) -> DepthIntrinsics:
                            (k.cy + 0.5) / 2 - 0.5, k.depth_unit_m)
 
 
+def _action_for(action: ActionSpec, v: float, omega: float) -> np.ndarray:
+    """The action in the model's output box that the spec maps to (v, ω)."""
+    lo, hi = np.asarray(action.output_low), np.asarray(action.output_high)
+    return lo + 0.5 * (np.asarray(action.normalise(v, omega)) + 1.0) * (hi - lo)
+
+
 def recorded_observations(spec: ObsSpec, count: int, seed: int = 0,
                           config: Config | None = None) -> np.ndarray:
     """(count, spec.size) float32 observations from simulated runs (module docs)."""
     cfg = config if config is not None else Config()
     cfg = replace(cfg, perception=replace(cfg.perception, decimation=2))
-    scenario = load_scenario(SCENARIO)
+    cal = Calibration()
     intrinsics = _half_resolution(D435_848x480)
-    observer = SpecObserver(spec)
     out = np.empty((count, spec.size), dtype=np.float32)
-    dt = 1.0 / CONTROL_HZ
-    n, episode = 0, 0
+    n, episode_seed = 0, seed
     while n < count:
-        world = World(scenario, seed=seed + episode, limits=cfg.limits)
-        episode += 1
-        renderer = DepthRenderer(intrinsics, base_z=BASE_LINK_HEIGHT_M, seed=world.seed)
-        model = WorldModel(cfg, renderer.mount)
-        planning = PlanningStep(tuple(world.goal), cfg, None, "DWA")
-        state: WorldState | None = None
-        cycle = 0
-        while n < count and not world.outcome.done:
-            r = world.robot
-            odom = Odometry(world.t, r.x, r.y, r.theta, r.v, r.omega)
-            if cycle % DEPTH_EVERY == 0:
-                snap = world.snapshot()
-                depth = renderer.render((r.x, r.y, r.theta), scene_from(world, snap))
-                state = model.update(DepthFrame(depth, world.t, cycle, intrinsics), odom)
-            ctx = planning.prepare(world.t, odom, state)
-            v, w = 0.0, 0.0
-            if ctx is not None and state is not None:
-                out[n] = observer.observe(ctx, odom, state)
+        episode = LockstepEpisode(SCENARIO, episode_seed, cfg, cal, FPS, noise=False,
+                                  intrinsics=intrinsics)
+        episode_seed += 1
+        job = SafeMoveJob(episode.goal_odom, cfg, None, None, spec=spec)
+        pipeline = Pipeline(cfg, cal, job)
+        while n < count and (inp := episode.cycle()) is not None:
+            sensed = pipeline.begin(inp)
+            action = None
+            if sensed.observation is not None and sensed.prepared is not None:
+                out[n] = sensed.observation
                 n += 1
-                v, w = ctx.dwa.best
-            world.step(dt, v, w)
-            cycle += 1
+                best = sensed.prepared.context.dwa.best
+                action = _action_for(spec.action, float(best[0]), float(best[1]))
+            episode.send(pipeline.finish(sensed, action).command)
     return out
 
 

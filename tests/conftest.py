@@ -15,6 +15,25 @@ import pytest
 
 from sim_stub.emulator_process import EmulatorProcess
 
+# --- markers by file -----------------------------------------------------------------------------
+
+# Deterministic lock-stepped simulation: episodes of sim_stub.lockstep (through sim_stub.evaluate
+# or train.env, in this process or in a `safemove eval` / `safemove train` child) on simulated
+# time, no wall clock and no real-time peer process. The HIL files are tests/test_hil_*.py.
+SIM_FILES = frozenset({"test_evaluate.py", "test_train.py"})
+
+
+@pytest.hookimpl(tryfirst=True)  # before `-m` deselects by marker
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """`hil` on every test in tests/test_hil_*.py, `sim` on those in SIM_FILES, so that
+    `pytest -m "not hil and not sim"` runs the unit tests alone."""
+    for item in items:
+        name = item.path.name
+        if name.startswith("test_hil_"):
+            item.add_marker(pytest.mark.hil)
+        elif name in SIM_FILES:
+            item.add_marker(pytest.mark.sim)
+
 
 @pytest.fixture
 def pty_pair() -> Iterator[tuple[int, str]]:

@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import threading
-import time
+import math
 
 import numpy as np
-from doubles import FreshFeedbackLink
+from doubles import FreshFeedbackLink, SimClock
 
 from runtime.config import Calibration, Config
 from runtime.drive import HoldJob
@@ -28,61 +27,54 @@ def test_depth_stats_count_gaps_and_missing_frames():
     assert (stats.frames, stats.gaps, stats.missing, stats.last_frame_number) == (6, 2, 3, 13)
 
 
-class SwitchableDepth:
-    """Unit-test double: a fresh frame per poll while `live` is set, nothing otherwise."""
+class ScheduledDepth:
+    """Unit-test double: a 15 fps camera on the loop's clock that goes dark between two times."""
 
-    def __init__(self) -> None:
-        self.live = threading.Event()
-        self.live.set()
-        self.polls = 0
+    def __init__(self, clock: SimClock, dark: tuple[float, float] = (math.inf, math.inf)) -> None:
+        self._clock = clock
+        self._dark = dark
+        self._last: float | None = None
         self.sent = 0
 
     def poll(self) -> DepthFrame | None:
-        """Every other poll while live (the loop drains until None)."""
-        self.polls += 1
-        if not self.live.is_set() or self.polls % 2 == 0:
+        now = self._clock()
+        if self._dark[0] <= now < self._dark[1]:
             return None
+        if self._last is not None and now - self._last < 1.0 / 15.0:
+            return None
+        self._last = now
         self.sent += 1
-        return frame(self.sent, time.monotonic())
+        return frame(self.sent, now)
 
 
 def test_stale_depth_degrades_the_loop_and_fresh_depth_recovers_it():
-    depth = SwitchableDepth()
-    loop = ControlLoop(Config(), Calibration(), FreshFeedbackLink(), HoldJob(), SystemdNotifier(None),
-                       depth=depth)
-    reports = []
-    thread = threading.Thread(target=lambda: reports.append(loop.run()), daemon=True)
-    thread.start()
-    try:
-        time.sleep(0.4)
-        assert loop.state.value == "RUNNING"
-        depth.live.clear()
-        time.sleep(0.6)  # max_age_s is 0.25 s
-        assert loop.state.value == "DEGRADED"
-        depth.live.set()
-        time.sleep(0.3)
-        assert loop.state.value == "RUNNING"
-    finally:
-        loop.request_stop("test over")
-        thread.join(timeout=5)
-    report = reports[0]
-    assert [to for _, _, to in report.transitions] == ["RUNNING", "DEGRADED", "RUNNING", "STOPPED"]
+    """Stepped on simulated time: the camera goes dark for 0.6 s (depth.max_age_s is 0.25 s)."""
+    clock = SimClock()
+    t0 = clock.now
+    depth = ScheduledDepth(clock, dark=(t0 + 1.0, t0 + 1.6))
+    loop = ControlLoop(Config(), Calibration(), FreshFeedbackLink(clock), HoldJob(),
+                       SystemdNotifier(None), clock=clock, max_cycles=60, depth=depth,
+                       wait=clock.wait)
+    report = loop.run()
+    steps = [(round(t - t0, 2), to) for t, _, to in report.transitions]
+    assert [to for _, to in steps] == ["RUNNING", "DEGRADED", "RUNNING", "STOPPED"]
+    assert 1.25 <= steps[1][0] <= 1.35  # the first cycle with the last frame over 0.25 s old
+    assert 1.6 <= steps[2][0] <= 1.65  # the first cycle with a frame again
+    assert report.degraded_cycles == round((steps[2][0] - steps[1][0]) * 20)
     assert report.depth is not None and report.depth.gaps == 0
     assert report.depth.frames == depth.sent
 
 
 def test_floor_check_without_a_floor_plane_says_so_instead_of_printing_nan(caplog):
     """A wall filling the view leaves no near-vertical plane to fit: no 'tilt nan°'."""
-    import math
-
     from runtime.perception import FloorVerdict
 
     loop = ControlLoop(Config(), Calibration(), FreshFeedbackLink(), HoldJob(),
-                       SystemdNotifier(None), depth=SwitchableDepth())
+                       SystemdNotifier(None), depth=ScheduledDepth(SimClock()))
     verdicts = iter([FloorVerdict(False, math.nan, math.nan, 320),
                      FloorVerdict(True, 0.2, 0.001, 500),
                      FloorVerdict(False, 4.0, -0.03, 500)])
-    loop._world_model.check_floor = lambda: next(verdicts)  # type: ignore[method-assign]
+    loop._pipeline.check_floor = lambda: next(verdicts)  # type: ignore[method-assign]
     caplog.set_level("WARNING", logger="safemove.loop")
     for _ in range(3):
         loop._check_floor()

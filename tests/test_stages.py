@@ -316,7 +316,7 @@ def test_settle_times_out_unsettled() -> None:
 def test_hold_job_always_stops_and_never_finishes() -> None:
     job = HoldJob()
     for k in range(200):
-        assert job.step(k * 0.05, MOVING if k % 2 else STILL) == STOP
+        assert job.decide(job.prepare(k * 0.05, MOVING if k % 2 else STILL)) == STOP
         if k % 50 == 0:
             job.pause()
         assert not job.finished

@@ -20,14 +20,15 @@ from train.env import RewardConfig, SafeMoveEnv
 SPEC = PRESETS["safemove"]
 
 
-def _room(tmp_path, name: str, goal_x: float, crowd: str = "{count: 0}") -> str:
+def _room(tmp_path, name: str, goal_x: float, crowd: str = "{count: 0}",
+          time_limit_s: float = 30.0) -> str:
     """An empty 6 m room; the robot at the origin facing +x, the goal goal_x ahead."""
     path = tmp_path / f"{name}.yaml"
     path.write_text(
         f"name: {name}\n"
         "description: an empty room\n"
         "seed: 1\n"
-        "time_limit_s: 30.0\n"
+        f"time_limit_s: {time_limit_s}\n"
         "area: {x_min: -3.0, x_max: 3.0, y_min: -3.0, y_max: 3.0}\n"
         "robot:\n"
         "  area: {x_min: -0.01, x_max: 0.01, y_min: -0.01, y_max: 0.01}\n"
@@ -92,15 +93,20 @@ def test_a_person_walking_into_the_parked_robot_ends_it_with_the_collision_penal
     assert r < -RewardConfig().collision + 0.1
 
 
+@pytest.mark.timeout(900)  # ~60 s idle: three child processes, torch and SB3 imported in each
 def test_train_writes_a_model_and_an_actor_that_eval_runs(tmp_path, safemove):
-    room = _room(tmp_path, "room", 1.5)
+    # episodes of 2.5 s (49 steps): none can end sooner (the goal is out of reach at 0.3 m/s and
+    # the room is empty), so 120 steps are two whole episodes, both timeouts
+    room = _room(tmp_path, "room", 1.5, time_limit_s=2.5)
     out = tmp_path / "run"
     run = safemove(["train", "-o", str(out), "--steps", "120", "--learning-starts", "60",
                     "--batch-size", "32", "--scenarios", room, "--checkpoint-every", "100",
                     "--no-noise", "--net", "64", "64"])
     assert run.wait(timeout=300) == 0, run.stderr[-3000:]
     summary = json.loads(run.stdout.strip().splitlines()[-1])
-    assert summary["steps"] == 120 and summary["episodes"] >= 0
+    # the Monitor's episodes (summary) and its file (outcomes) agree, one row per episode
+    assert summary["steps"] == 120 and summary["episodes"] == 2
+    assert summary["outcomes"] == {"timeout": 2}
     assert max(summary["export_parity_max_abs"].values()) < 1e-5
     for name in ("td3.zip", "actor.onnx", "spec.json", "monitor.csv",
                  "checkpoints/td3_100_steps.zip"):

@@ -13,7 +13,7 @@ from doubles import FreshFeedbackLink
 from runtime.config import Calibration, Config
 from runtime.loop import ControlLoop
 from runtime.sdnotify import SystemdNotifier
-from runtime.types import Odometry, Twist
+from runtime.types import Odometry, Prepared, Twist
 
 pytestmark = pytest.mark.hil
 
@@ -67,7 +67,7 @@ class NotifyListener:
 
 
 class StallableJob:
-    """Drives forward; blocks inside step() while `stall` is set, like a hung stage."""
+    """Drives forward; blocks inside prepare() while `stall` is set, like a hung stage."""
 
     name = "stallable"
     finished = False
@@ -76,10 +76,13 @@ class StallableJob:
         self.stall = threading.Event()
         self.release = threading.Event()
 
-    def step(self, now: float, odom: Odometry, world: object = None) -> Twist:
+    def prepare(self, now: float, odom: Odometry, world: object = None) -> Prepared:
         if self.stall.is_set():
             self.release.wait()
-        return Twist(0.1, 0.0)
+        return Prepared(Twist(0.1, 0.0))
+
+    def decide(self, prepared: Prepared, action: object = None) -> Twist:
+        return prepared.context
 
     def pause(self) -> None:
         pass

@@ -1,11 +1,11 @@
 """The training environment: a gymnasium Env over the lock-stepped simulated robot.
 
-One step is one control cycle of the runtime's SafeMove job, with the actor's decision supplied
-from outside: the observation is built by the spec (`SpecObserver`, as on the robot) from the
-world model's output and DWA's result (`PlanningStep.prepare`, count-budgeted), the action is
-mapped to a twist by the spec's action mapping, the shield certifies it (`PlanningStep.certify`),
-and the limits stage and the base model execute it (`LockstepEpisode`). So the policy learns on
-the pipeline it will run in, shield included, and its observations are exactly the robot's.
+One step is one control cycle of the runtime's `Pipeline` running the SafeMove job, with the
+actor's decision supplied from outside between the pipeline's two halves: `begin` (odometry,
+world model, health, DWA count-budgeted, the spec's observation) gives the observation, the
+agent's action goes to `finish` (the spec's action mapping, the shield, the limits stage), and
+the base model executes the command (`LockstepEpisode`). So the policy learns on the pipeline it
+will run in, shield included, and its observations are exactly the robot's.
 
 Episodes: each reset draws a scenario from the list and a fresh episode seed from the env's
 generator (seeded by `reset(seed=…)`), so a seeded env is reproducible. The world judges from
@@ -30,10 +30,9 @@ import numpy as np
 
 from runtime.config import LoadedConfig
 from runtime.obs_spec import ObsSpec
-from runtime.planning_step import PlanningContext, PlanningStep
-from runtime.safemove_job import SpecObserver
+from runtime.pipeline import Pipeline, Sensed
+from runtime.safemove_job import SafeMoveJob
 from runtime.schema import setting
-from runtime.types import STOP
 from sim_stub.lockstep import LockstepEpisode
 from sim_stub.world import World
 
@@ -70,10 +69,10 @@ class SafeMoveEnv(gym.Env):
         a = spec.action
         self.action_space = gym.spaces.Box(np.array(a.output_low, dtype=F32),
                                            np.array(a.output_high, dtype=F32), dtype=F32)
-        self._observer = SpecObserver(spec)
         self._episode: LockstepEpisode | None = None
-        self._planning: PlanningStep | None = None
-        self._ctx: PlanningContext | None = None
+        self._job: SafeMoveJob | None = None
+        self._pipeline: Pipeline | None = None
+        self._sensed: Sensed | None = None
         self._distance = 0.0
         self._t = 0.0
 
@@ -83,10 +82,11 @@ class SafeMoveEnv(gym.Env):
         rng = self.np_random
         scenario = self.scenarios[int(rng.integers(len(self.scenarios)))]
         episode_seed = int(rng.integers(2**31 - 1))
-        self._episode = LockstepEpisode(scenario, episode_seed, self.loaded, self.fps,
-                                        self.noise, self.crowd)
-        self._planning = PlanningStep(self._episode.goal_odom, self.loaded.config, None,
-                                      "policy")
+        self._episode = LockstepEpisode(scenario, episode_seed, self.loaded.config,
+                                        self.loaded.calibration, self.fps, self.noise, self.crowd)
+        self._job = SafeMoveJob(self._episode.goal_odom, self.loaded.config, None, None,
+                                spec=self.obs_spec)
+        self._pipeline = Pipeline(self.loaded.config, self.loaded.calibration, self._job)
         self._distance = self._true_distance()
         self._t = 0.0
         obs, outcome = self._advance()
@@ -97,12 +97,12 @@ class SafeMoveEnv(gym.Env):
 
     def step(self, action: np.ndarray
              ) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        if self._episode is None or self._planning is None or self._ctx is None:
+        if (self._episode is None or self._job is None or self._pipeline is None
+                or self._sensed is None):
             raise RuntimeError("step() before reset(), or after the episode ended")
-        proposed = self.obs_spec.action.to_twist(np.asarray(action, dtype=F32))
-        command = self._planning.certify(proposed, self._ctx)
-        changed = (command.v, command.omega) != (proposed.v, proposed.omega)
-        self._episode.command(command)
+        out = self._pipeline.finish(self._sensed, np.asarray(action, dtype=F32))
+        changed = self._job.shield_changed
+        self._episode.send(out.command)
         t_before = self._t
         obs, outcome = self._advance()
         cfg = self.reward_config
@@ -131,20 +131,20 @@ class SafeMoveEnv(gym.Env):
 
     def _advance(self) -> tuple[np.ndarray | None, str]:
         """To the next cycle that needs a decision: (its observation, "running"), or (None,
-        the outcome) when the episode ended. Cycles without one (no world yet) stand still."""
-        episode, planning = self._episode, self._planning
-        assert episode is not None and planning is not None
-        self._ctx = None
-        while (now := episode.cycle()) is not None:
-            t, odom, state = now
-            self._t = t
-            ctx = planning.prepare(t, odom, state)
-            if ctx is not None and state is not None:
-                self._ctx = ctx
-                return self._observer.observe(ctx, odom, state).astype(F32), "running"
-            if planning.reached:
+        the outcome) when the episode ended. Cycles without one (no world yet, holding) run
+        the pipeline with no decision: the robot stands still."""
+        episode, job, pipeline = self._episode, self._job, self._pipeline
+        assert episode is not None and job is not None and pipeline is not None
+        self._sensed = None
+        while (inp := episode.cycle()) is not None:
+            self._t = inp.t
+            sensed = pipeline.begin(inp)
+            if sensed.observation is not None:
+                self._sensed = sensed
+                return sensed.observation.astype(F32), "running"
+            if job.reached:
                 return None, "odometry_reached"
-            episode.command(STOP)
+            episode.send(pipeline.finish(sensed).command)
         self._t = episode.world.outcome.t
         return None, episode.world.outcome.status
 
