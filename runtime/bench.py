@@ -161,9 +161,11 @@ def _scan_of(points: Any, bin_angles: Any) -> Any:
     shield's unseen-space test in random planner worlds."""
     import numpy as np
 
-    w = float(bin_angles[1] - bin_angles[0])
-    k = np.floor((np.arctan2(points[:, 1], points[:, 0]) - bin_angles[0] + w / 2) / w).astype(int)
-    ok = (k >= 0) & (k < len(bin_angles))
+    from runtime.geometry import bin_index, bin_layout
+
+    k = bin_index(np.arctan2(points[:, 1], points[:, 0]), *bin_layout(bin_angles),
+                  len(bin_angles))
+    ok = k >= 0
     scan = np.full(len(bin_angles), 10.0)
     np.minimum.at(scan, k[ok], np.hypot(points[ok, 0], points[ok, 1]))
     return scan

@@ -7,7 +7,7 @@ schemas (a test keeps them equal), so documentation and validation cannot drift 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -175,12 +175,23 @@ class DepthConfig:
 
 
 @dataclass(frozen=True)
+class RobotConfig:
+    radius_m: float = setting(
+        0.17, "radius of the disc that covers the robot's footprint (Spark: 0.17 m); the planner"
+        " and the shield keep their margins outside it", "m", min=0.01, max=2.0)
+
+
+@dataclass(frozen=True)
 class Config:
+    """The runtime config. Values two stages need are set once (`robot.radius_m`,
+    `loop.control_hz`) and copied into the stages' sections here (schema.derived)."""
+
     calibration_file: str = setting(
         "",
         "per-robot calibration file; relative paths are relative to this config file;"
         " empty = the vendor defaults in calibration/spark_default.yaml",
     )
+    robot: RobotConfig = section(RobotConfig, "the robot's body")
     loop: LoopConfig = section(LoopConfig, "control loop timing and health")
     base: BaseConfig = section(BaseConfig, "Spark base serial link")
     depth: DepthConfig = section(DepthConfig, "depth camera (RealSense D435) or its simulated stand-in")
@@ -200,6 +211,13 @@ class Config:
         RecoveryConfig, "the DWA job's stall recovery: step away from what blocks it, then go on")
     policy: PolicyConfig = section(PolicyConfig, "the TD3 actor (onnxruntime) of the safemove planner")
     limits: LimitsConfig = section(LimitsConfig, "velocity and acceleration limits, applied last")
+
+    def __post_init__(self) -> None:
+        period, radius = 1.0 / self.loop.control_hz, self.robot.radius_m
+        object.__setattr__(self, "dwa", replace(self.dwa, robot_radius_m=radius,
+                                                window_dt=period))
+        object.__setattr__(self, "shield", replace(self.shield, robot_radius=radius,
+                                                   period=period))
 
 
 CONFIG_TITLE = (

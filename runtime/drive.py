@@ -14,9 +14,8 @@ from typing import Any
 
 from runtime.errors import ConfigError
 from runtime.schema import load_yaml_file
-from runtime.types import STOP, Odometry, Prepared, Twist
+from runtime.types import STILL_M_S, STOP, Odometry, Prepared, Twist
 
-STILL_V = 0.005  # m/s
 STILL_OMEGA = 0.01  # rad/s
 STILL_FOR_S = 0.3
 SETTLE_TIMEOUT_S = 3.0
@@ -108,7 +107,7 @@ class DriveJob:
     def _settle(self, now: float, odom: Odometry) -> None:
         if self._settle_started is None:
             self._settle_started = now
-        still = abs(odom.v) < STILL_V and abs(odom.omega) < STILL_OMEGA
+        still = abs(odom.v) < STILL_M_S and abs(odom.omega) < STILL_OMEGA
         self._still_since = (now if self._still_since is None else self._still_since) if still else None
         if self._still_since is not None and now - self._still_since >= STILL_FOR_S:
             self._finished = self.settled = True

@@ -3,9 +3,9 @@
 Frame and time: everything is in base_link at the current time (robot at the origin, heading 0).
 Rollout step k (k = 0..steps-1) is the pose at t_k = (k+1)·dt under constant (v, ω) (exact
 unicycle arc). Dynamic obstacles come as positions predicted at the SAME times: (T, steps, 2)
-centres and (T, steps) radii that already include the growing uncertainty (the loop builds them
-with `Tracker.predict_positions(t_now + dt, dt, steps)` transformed into base_link, radius =
-track radius + n·std).
+centres and (T, steps) radii that already include the growing uncertainty (the planning step
+builds them with `planning_step.predict_tracks_base`: constant velocity, radius = track radius
++ min(k_sigma·std, cap)).
 
 Cost (maximised): G = α·heading + β·clearance + γ·velocity − δ·density, each term divided by a
 fixed scale σ (`term_scales`: π, clearance_cap_m, the top speed, density_scale), so the weights
@@ -67,8 +67,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from runtime.geometry import wrap_angles
 from runtime.limits import LimitsConfig
-from runtime.schema import setting
+from runtime.schema import derived, setting
 
 
 @dataclass(frozen=True)
@@ -76,8 +77,8 @@ class DWAConfig:
     horizon_s: float = setting(3.0, "rollout horizon of each sample", "s", min=0.1, max=10.0)
     dt: float = setting(0.1, "rollout step (obstacle predictions use the same steps)", "s",
                         min=0.01, max=1.0)
-    window_dt: float = setting(0.05, "dynamic window: reachable velocities within this time"
-                               " (the control period)", "s", min=0.001, max=2.0)
+    window_dt: float = derived(0.05, "dynamic window: reachable velocities within this time",
+                               "loop.control_hz", "s")
     n_v: int = setting(20, "coarse grid: linear velocity samples", min=1, max=200)
     n_omega: int = setting(20, "coarse grid: angular velocity samples", min=1, max=200)
     refine_n: int = setting(5, "refinement: n×n samples around the best per round (odd)",
@@ -99,7 +100,7 @@ class DWAConfig:
                                       " robot) count for density (bounds the cost)", min=0)
     density_min_avg_m: float = setting(0.1, "floor of the average distance in density", "m",
                                        min=0.001, max=5.0)
-    robot_radius_m: float = setting(0.18, "robot footprint radius", "m", min=0.0, max=2.0)
+    robot_radius_m: float = derived(0.17, "robot footprint radius", "robot.radius_m", "m")
     safety_margin_m: float = setting(0.05, "extra clearance kept from every obstacle", "m",
                                      min=0.0, max=2.0)
     track_k_sigma: float = setting(2.0, "a track's predicted disc grows by this many standard"
@@ -327,10 +328,6 @@ def prepare(cfg: DWAConfig, lim: LimitsConfig, v0: float, w0: float, points: np.
 # --- vectorised evaluation -----------------------------------------------------------------------
 
 
-def _wrap(a: np.ndarray) -> np.ndarray:
-    return (a + np.pi) % (2.0 * np.pi) - np.pi
-
-
 class _Evaluator:
     """Raw terms for batches of samples against one prepared world.
 
@@ -398,7 +395,7 @@ class _Evaluator:
         ang = (np.arctan2(self.goal[1] - y[-1].astype(np.float64),
                           self.goal[0] - x[-1].astype(np.float64))
                - samples[:, 1] * prep.times[-1])
-        heading = np.pi - np.abs(_wrap(ang))
+        heading = np.pi - np.abs(wrap_angles(ang))
         gap = self._static_gap(x, y)
         n_obs, n_t = len(self.ox), len(self.reach_r)
         density = np.zeros(k_n)

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from runtime.geometry import bin_index, bin_layout, into_frame
 from runtime.perception import PerceptionOutput, ViewCone
 from runtime.schema import setting
 
@@ -138,11 +139,8 @@ class ObstacleMemory:
         bx = c * dx + s * dy
         by = -s * dx + c * dy
         r = np.hypot(bx, by)
-        nb = len(bin_angles)
-        width = float(bin_angles[1] - bin_angles[0]) if nb > 1 else 2 * math.pi
-        lo = float(bin_angles[0]) - width / 2
-        k = np.floor((np.arctan2(by, bx) - lo) / width).astype(np.intp)
-        inside = (k >= 0) & (k < nb)
+        k = bin_index(np.arctan2(by, bx), *bin_layout(bin_angles), len(bin_angles))
+        inside = k >= 0
         kk = np.where(inside, k, 0)
         free = np.minimum(np.asarray(scan, dtype=np.float64)[kk], cfg.range_max_m)
         clear = inside & ~np.asarray(unknown)[kk] & (r < free - cfg.clear_margin_m)
@@ -268,10 +266,6 @@ class ObstacleMemory:
         """(M, 2) float32 remembered points still alive at t, in base_link at `pose_odom`."""
         p = self.points_odom(t)
         px, py, th = pose_odom
-        c, s = math.cos(th), math.sin(th)
-        dx = p[:, 0] - px
-        dy = p[:, 1] - py
         out = np.empty((len(p), 2), dtype=F32)
-        out[:, 0] = c * dx + s * dy
-        out[:, 1] = -s * dx + c * dy
+        out[:, 0], out[:, 1] = into_frame(p[:, 0] - px, p[:, 1] - py, th)
         return out

@@ -8,13 +8,8 @@ from __future__ import annotations
 
 import math
 
+from runtime.geometry import wrap_angle
 from runtime.types import Odometry, WheelIncrement
-
-
-def wrap_angle(a: float) -> float:
-    """Wrap to [-pi, pi)."""
-    wrapped = (a + math.pi) % (2.0 * math.pi) - math.pi
-    return wrapped - 2.0 * math.pi if wrapped >= math.pi else wrapped
 
 
 def advance(odom: Odometry, inc: WheelIncrement, axle_m: float) -> Odometry:

@@ -54,7 +54,7 @@ from dataclasses import dataclass
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 
-from runtime.odometry import wrap_angle
+from runtime.geometry import wrap_angle
 from runtime.schema import setting
 from runtime.types import MAX_UNCONFIRMED_DT_S, Odometry, WheelIncrement
 
@@ -222,7 +222,6 @@ class OdometryEKF:
         self.accepted: Counter[str] = Counter()
         self._t = 0.0
         self._distance = 0.0
-        self.last_mahalanobis2: dict[str, float] = {"wheel": 0.0, "gyro": 0.0}
 
     # --- read-outs ---------------------------------------------------------------------------
 
@@ -429,7 +428,6 @@ class OdometryEKF:
         ekf = self._ekf
         y = self._residual(z, H @ ekf.x)
         d2 = _mahalanobis2(y, H @ ekf.P @ H.T + R)
-        self.last_mahalanobis2[name] = d2
         gate = self.config.wheel_gate_chi2 if name == "wheel" else self.config.gyro_gate_chi2
         if not d2 <= gate:
             self._run[name] += 1

@@ -45,7 +45,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from runtime.calibration_schema import CameraMount
-from runtime.geometry import R_LINK_OPTICAL, rpy_matrix
+from runtime.geometry import R_LINK_OPTICAL, bin_index, rpy_matrix
 from runtime.schema import setting
 from runtime.types import DepthIntrinsics
 
@@ -172,11 +172,8 @@ class ViewCone:
 
     def bin_of(self, bearing: np.ndarray) -> np.ndarray:
         """Bin index per bearing (rad); -1 outside the span."""
-        n = len(self.bin_angles)
-        lo = self.bin_angles[0] - self.bin_width / 2
-        k = np.floor((bearing - lo) / self.bin_width).astype(np.intp)
-        k[(k < 0) | (k >= n)] = -1
-        return k
+        lo = float(self.bin_angles[0]) - self.bin_width / 2
+        return bin_index(bearing, lo, self.bin_width, len(self.bin_angles))
 
 
 @dataclass

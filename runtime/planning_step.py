@@ -21,9 +21,10 @@ import numpy as np
 
 from runtime.config import Config
 from runtime.dwa import DWAResult, plan
+from runtime.geometry import into_frame
 from runtime.shield import ShieldWorld, shield
 from runtime.tracking import Track
-from runtime.types import Odometry, Twist
+from runtime.types import STILL_M_S, Odometry, Twist
 from runtime.world_model import WorldState
 
 log = logging.getLogger("safemove.planner")
@@ -32,7 +33,6 @@ log = logging.getLogger("safemove.planner")
 # drives on to 0.15 m: stopping at 0.2 m of odometry left the robot 0.201 m from the goal in a
 # simulated episode (1 mm of odometry error) and the episode timed out beside its goal.
 ARRIVAL_RADIUS_M = 0.15
-STILL_V = 0.01
 
 
 def predict_tracks_base(
@@ -51,9 +51,7 @@ def predict_tracks_base(
     cov = np.array([t.covariance for t in confirmed])
     odom = p[:, None, :] + v[:, None, :] * tau[None, :, None]
     x, y, th = pose
-    c, s = math.cos(th), math.sin(th)
-    dx, dy = odom[..., 0] - x, odom[..., 1] - y
-    base = np.stack([c * dx + s * dy, -s * dx + c * dy], axis=-1)
+    base = np.stack(into_frame(odom[..., 0] - x, odom[..., 1] - y, th), axis=-1)
     pos_var = np.maximum(cov[:, 0, 0], cov[:, 1, 1])
     # a track the stationarity test holds still is predicted still: its velocity variance
     # (large while the track is young) must not grow it into a wall across the room
@@ -110,14 +108,13 @@ class PlanningStep:
         here = np.array((odom.x, odom.y))
         if float(np.hypot(*(self.goal - here))) <= ARRIVAL_RADIUS_M:
             self.reached = True
-            if abs(odom.v) < STILL_V:
+            if abs(odom.v) < STILL_M_S:
                 self.finished = True
             return None
         if world is None:
             return None
         to_goal = (self.goal if plan_goal is None else plan_goal) - here
-        c, s = math.cos(odom.theta), math.sin(odom.theta)
-        goal_base = np.array([c * to_goal[0] + s * to_goal[1], -s * to_goal[0] + c * to_goal[1]])
+        goal_base = np.array(into_frame(float(to_goal[0]), float(to_goal[1]), odom.theta))
         dwa = self._cfg.dwa
         steps = max(1, round(dwa.horizon_s / dwa.dt))
         pos, std, radii = predict_tracks_base(world.tracks, (odom.x, odom.y, odom.theta),
@@ -130,7 +127,8 @@ class PlanningStep:
             self.inadmissible += 1
         sw = ShieldWorld(points=world.points_base, track_positions=pos, track_std=std,
                          track_radii=radii, track_dt=dwa.dt, bin_angles=world.bin_angles,
-                         unknown=world.unknown, scan=world.scan,
+                         unknown=world.unknown, scan=world.scan, blind_range=world.blind_range,
+                         track_ids=tuple(t.id for t in world.tracks if t.confirmed),
                          points_age=max(0.0, now - world.t))
         return PlanningContext(goal_base, Twist(odom.v, odom.omega), result, pos, std, radii, sw)
 

@@ -15,7 +15,7 @@ import dataclasses
 import math
 from collections import deque
 
-from runtime.odometry import wrap_angle
+from runtime.geometry import wrap_angle
 from runtime.types import Odometry
 
 

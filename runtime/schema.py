@@ -42,6 +42,17 @@ def setting(
     return field(default=default, metadata=meta)
 
 
+def derived(default: Any, doc: str, source: str, unit: str = "") -> Any:
+    """A field a stage reads but no one sets in its section: `Config` fills it from `source`,
+    the one key that sets the value, so two stages cannot disagree on it (the footprint, the
+    control period). Refused in a file or an override; not rendered."""
+    return field(default=default, metadata={"doc": doc, "unit": unit, "derived": source})
+
+
+def _derived_from(f: Any) -> str | None:
+    return f.metadata.get("derived")
+
+
 def section(cls: type[T], doc: str) -> Any:
     """A nested schema section with its own documentation line."""
     return field(default_factory=cls, metadata={"doc": doc})
@@ -127,6 +138,9 @@ def build(cls: type[T], data: Any, source: str, prefix: str = "") -> T:
             hint = difflib.get_close_matches(str(key), known, n=1)
             suggestion = f" (did you mean '{prefix}{hint[0]}'?)" if hint else ""
             raise ConfigError(f"{source}: unknown key '{prefix}{key}'{suggestion}")
+        if (origin := _derived_from(known[key])) is not None:
+            raise ConfigError(f"{source}: key '{prefix}{key}' is not set here: it follows"
+                              f" '{origin}'; set that instead")
     hints = _hints(cls)
     values: dict[str, Any] = {}
     for name, f in known.items():
@@ -146,7 +160,8 @@ def build(cls: type[T], data: Any, source: str, prefix: str = "") -> T:
 def to_plain(obj: Any) -> Any:
     """Schema dataclass → plain dicts/lists, for printing and writing."""
     if is_dataclass(obj):
-        return {f.name: to_plain(getattr(obj, f.name)) for f in fields(obj)}
+        return {f.name: to_plain(getattr(obj, f.name)) for f in fields(obj)
+                if _derived_from(f) is None}
     if isinstance(obj, tuple):
         return [to_plain(v) for v in obj]
     return obj
@@ -215,6 +230,8 @@ def apply_override(data: dict[str, Any], cls: type, assignment: str) -> None:
             hint = difflib.get_close_matches(part, known, n=1)
             suggestion = f" (did you mean '{'.'.join(parts[:i] + [hint[0]])}'?)" if hint else ""
             raise ConfigError(f"--set {key}: unknown key '{dotted}'{suggestion}")
+        if (origin := _derived_from(known[part])) is not None:
+            raise ConfigError(f"--set {key}: '{key}' follows '{origin}'; set that instead")
         tp = _hints(node_cls)[part]
         if i == len(parts) - 1:
             if is_dataclass(tp):
@@ -246,6 +263,8 @@ def render_documented(obj: Any, title: str, indent: int = 0) -> str:
     pad = "  " * indent
     defaults = type(obj)()
     for f in fields(obj):
+        if _derived_from(f) is not None:
+            continue
         value = getattr(obj, f.name)
         meta = f.metadata
         if is_dataclass(value):

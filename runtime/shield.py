@@ -77,9 +77,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from runtime.geometry import bin_layout
 from runtime.limits import LimitsConfig, apply_limits
-from runtime.schema import setting
-from runtime.types import Twist
+from runtime.schema import derived, setting
+from runtime.types import STILL_M_S, Twist
 
 
 @dataclass(frozen=True)
@@ -87,13 +88,13 @@ class ShieldConfig:
     """Shield settings. Braking rates are not repeated here: the guaranteed deceleration is
     `limits.decel_max` and the angular braking rate `limits.alpha_max` (LimitsConfig)."""
 
-    robot_radius: float = setting(0.17, "radius of the robot's footprint disc (Spark)", "m",
-                                  min=0.0, max=1.0)
+    robot_radius: float = derived(0.17, "radius of the robot's footprint disc",
+                                  "robot.radius_m", "m")
     margin: float = setting(0.05, "clearance added to the footprint radius", "m", min=0.0, max=1.0)
     latency: float = setting(0.05, "sensing-to-actuation delay; the current twist is kept that long",
                              "s", min=0.0, max=1.0)
-    period: float = setting(0.05, "control period; the new command is held that long before braking",
-                            "s", min=0.0, max=1.0, min_exclusive=True)
+    period: float = derived(0.05, "control period; the new command is held that long before"
+                            " braking", "loop.control_hz", "s")
     check_dt: float = setting(0.01, "time between checked samples of the trajectory", "s",
                               min=0.0, max=0.2, min_exclusive=True)
     substeps: int = setting(4, "integration sub-steps per check step", min=1, max=64)
@@ -138,8 +139,8 @@ class ShieldConfig:
 class ShieldWorld:
     """The world as the shield sees it, all in base_link at t = 0 (the data's time).
 
-    Tracks: predicted centres at times k·track_dt, k = 0..S-1 (Tracker.predict_positions with
-    t0 = now, transformed into base_link), their position std and radii.
+    Tracks: predicted centres at times k·track_dt, k = 0..S-1 from now, in base_link
+    (planning_step.predict_tracks_base), their position std, radii and ids (for the reason).
     Scan: bins right to left (perception conventions); `blind_range` None = no blind zone data
     (treated as 0, i.e. only unknown bins are blind).
     """
@@ -153,7 +154,6 @@ class ShieldWorld:
     unknown: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     scan: np.ndarray = field(default_factory=lambda: np.zeros(0))
     blind_range: np.ndarray | None = None
-    bin_width: float = 0.0  # rad; 0 = inferred from bin_angles spacing
     track_ids: tuple[int, ...] | None = None
     points_age: float = 0.0  # s since the depth frame the points were last seen in
 
@@ -244,7 +244,7 @@ def _arrays(world: ShieldWorld) -> _WorldArrays:
         speed = float(np.max(np.linalg.norm(np.diff(P, axis=1), axis=2))) / world.track_dt
         srate = float(np.max(np.abs(np.diff(S, axis=1)))) / world.track_dt
     nb = len(world.bin_angles)
-    lo, w = _bin_geometry(world) if nb else (0.0, 0.0)
+    lo, w = bin_layout(np.asarray(world.bin_angles, dtype=float)) if nb else (0.0, 0.0)
     blind = (np.zeros(nb) if world.blind_range is None
              else np.broadcast_to(np.asarray(world.blind_range, dtype=float), (nb,)))
     return _WorldArrays(
@@ -282,19 +282,7 @@ def _swept_distance(c: np.ndarray, p0: np.ndarray, pt: np.ndarray) -> np.ndarray
     return np.hypot(d[..., 0], d[..., 1])
 
 
-def _bin_geometry(world: ShieldWorld) -> tuple[float, float]:
-    ang = np.asarray(world.bin_angles, dtype=float)
-    if world.bin_width > 0:
-        w = world.bin_width
-    elif len(ang) >= 2:
-        w = float(ang[1] - ang[0])
-    else:
-        raise ValueError("ShieldWorld needs bin_width with fewer than two bins")
-    return float(ang[0] - w / 2), w
-
-
 _OUTSIDE, _UNKNOWN, _SHADOW, _BLIND = 1, 2, 3, 4
-_CLOSING_M_S = 0.01  # speed toward a point above which the robot counts as closing on it
 
 
 def _approach_margin(cfg: ShieldConfig, c: np.ndarray, heading: np.ndarray, vs: np.ndarray,
@@ -306,7 +294,7 @@ def _approach_margin(cfg: ShieldConfig, c: np.ndarray, heading: np.ndarray, vs: 
     rel_y = q[None, :, 1] - c[:, None, 1]
     along = (rel_x * np.cos(heading)[:, None] + rel_y * np.sin(heading)[:, None]) / np.maximum(
         d, 1e-9)  # cos of the point's bearing from the heading
-    closing = vs[:, None] * along > _CLOSING_M_S
+    closing = vs[:, None] * along > STILL_M_S  # the robot's speed toward the point
     front = np.abs(along) >= math.cos(math.radians(cfg.approach_half_angle_deg))
     return np.where(closing & front, cfg.untracked_approach_m_s * ts[:, None], 0.0)
 

@@ -69,6 +69,7 @@ from filterpy.kalman import KalmanFilter
 from scipy.cluster.hierarchy import linkage
 from scipy.optimize import linear_sum_assignment
 
+from runtime.geometry import wrap_angles
 from runtime.schema import setting
 
 GATED_COST = 1.0e6  # finite stand-in for "not allowed"; pairs with it are dropped after solving
@@ -372,10 +373,6 @@ def cluster_points(
     )
 
 
-def _wrap(a: np.ndarray) -> np.ndarray:
-    return (a + np.pi) % (2.0 * np.pi) - np.pi
-
-
 def _hidden_edges(
     lab: np.ndarray,
     order: np.ndarray,
@@ -406,14 +403,14 @@ def _hidden_edges(
     out = np.zeros(k, dtype=bool)
     if len(sensor) >= 3 and config.field_of_view_deg < 360.0:
         half = 0.5 * math.radians(config.field_of_view_deg)
-        out |= _wrap(lo - sensor[2]) <= -half + margin
-        out |= _wrap(hi - sensor[2]) >= half - margin
+        out |= wrap_angles(lo - sensor[2]) <= -half + margin
+        out |= wrap_angles(hi - sensor[2]) >= half - margin
     if k > 1:
         # i's low edge beside or inside the angular span of a cluster j that is nearer there
         # (edges of near objects jitter by degrees, so "inside" counts too), and the mirror case
         def inside(edge: np.ndarray) -> np.ndarray:
-            return (_wrap(edge[:, None] - lo[None, :]) >= -margin) & (
-                _wrap(edge[:, None] - hi[None, :]) <= margin
+            return (wrap_angles(edge[:, None] - lo[None, :]) >= -margin) & (
+                wrap_angles(edge[:, None] - hi[None, :]) <= margin
             )
 
         low_hidden = inside(lo) & (r_hi[None, :] < r_lo[:, None])
@@ -497,14 +494,6 @@ class Tracker:
         self._h[0, 0] = self._h[1, 1] = 1.0
         self._r = np.eye(2) * config.measurement_noise_m**2
         self.last_costs: np.ndarray = np.zeros((0, 0))  # the last cost matrix (for tests/bench)
-
-    @property
-    def time(self) -> float | None:
-        return self._t
-
-    def reset(self) -> None:
-        self._tracks.clear()
-        self._t = None
 
     # --- public --------------------------------------------------------------------------------
 
@@ -595,50 +584,6 @@ class Tracker:
             return True  # the sensor is inside the disc: too close to be seen whole
         bearing = abs(math.remainder(math.atan2(dy, dx) - float(sensor_pose[2]), math.tau))
         return bearing + math.asin(min(1.0, tr.radius / d)) > half
-
-    def predict(self, t: float, confirmed_only: bool = True) -> list[Track]:
-        """Tracks predicted to time t (≥ the last update) without changing the tracker.
-        Stationary tracks stay where they are (their covariance still grows)."""
-        if self._t is None:
-            return []
-        dt = max(0.0, t - self._t)
-        f, q = cv_matrices(dt, self.config.accel_noise_m_s2)
-        out = []
-        for tr in self._tracks:
-            if confirmed_only and not tr.confirmed:
-                continue
-            x = tr.kf.x[:, 0]
-            p = f @ tr.kf.P @ f.T + q
-            if self._is_stationary(x, tr.kf.P):
-                x = np.array([x[0], x[1], 0.0, 0.0])
-            else:
-                x = f @ x
-            out.append(self._export(tr, x, p, t))
-        return out
-
-    def predict_positions(self, t0: float, dt: float, steps: int) -> tuple[np.ndarray, np.ndarray]:
-        """Confirmed tracks' centres at t0 + k·dt, k = 0..steps-1: positions (T, steps, 2) and
-        position standard deviations (T, steps) (sqrt of the larger eigenvalue bound: the
-        root of the trace/2 + |off-diagonal| of the predicted position covariance)."""
-        tracks = [tr for tr in self._tracks if tr.confirmed]
-        n = len(tracks)
-        pos = np.zeros((n, steps, 2))
-        sig = np.zeros((n, steps))
-        if n == 0 or self._t is None:
-            return pos, sig
-        q2 = self.config.accel_noise_m_s2**2
-        for a, tr in enumerate(tracks):
-            x = tr.kf.x[:, 0]
-            p = tr.kf.P
-            v = np.zeros(2) if self._is_stationary(x, p) else x[2:]
-            tau = np.maximum(t0 + dt * np.arange(steps) - self._t, 0.0)
-            pos[a] = x[:2] + tau[:, None] * v
-            # Var(p + τ v) + white-acceleration growth (τ⁴/4 q per axis)
-            pxx = p[0, 0] + 2 * tau * p[0, 2] + tau**2 * p[2, 2] + 0.25 * tau**4 * q2
-            pyy = p[1, 1] + 2 * tau * p[1, 3] + tau**2 * p[3, 3] + 0.25 * tau**4 * q2
-            pxy = p[0, 1] + tau * (p[0, 3] + p[1, 2]) + tau**2 * p[2, 3]
-            sig[a] = np.sqrt(np.maximum(0.5 * (pxx + pyy) + np.abs(pxy), 0.0))
-        return pos, sig
 
     # --- internals -----------------------------------------------------------------------------
 

@@ -23,6 +23,10 @@ class Twist:
 
 STOP = Twist(0.0, 0.0)
 
+# Below this speed (m/s) the robot stands still: a job has stopped, the robot is not closing on
+# anything. Wheel-encoder quantisation shows up as a few mm/s while turning in place.
+STILL_M_S = 0.01
+
 
 class CliffSensor(enum.IntFlag):
     """Cliff sensors as reported by the base (already inverted from the wire's active-low)."""

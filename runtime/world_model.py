@@ -34,6 +34,7 @@ class WorldState:
     tracks: list[Track]
     floor_ok: bool | None
     valid_fraction: float = 1.0  # of the frame's (decimated) pixels; near 0: the camera is blind
+    blind_range: np.ndarray | None = None  # (bins,) base_link range of the camera's minimum range
 
 
 class WorldModel:
@@ -71,7 +72,8 @@ class WorldModel:
         t3 = clock()
         self.stage_s.update(perception=t1 - t0, memory=t2 - t1, tracking=t3 - t2)
         return WorldState(frame.t, out.scan.copy(), out.unknown.copy(), out.bin_angles,
-                          remembered, tracks, out.floor_ok, out.valid_fraction)
+                          remembered, tracks, out.floor_ok, out.valid_fraction,
+                          out.blind_range.copy())
 
     def check_floor(self) -> FloorVerdict | None:
         """The floor check when one is due (the loop runs it in its slack), else None."""

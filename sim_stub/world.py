@@ -31,12 +31,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from runtime.config import LimitsConfig
+from runtime.config import LimitsConfig, RobotConfig
 from runtime.errors import ConfigError
 from sim_stub.orca import Body, Circle, Crowd, OrcaParams, Shape, rectangle, segment_box
 from sim_stub.scenario import BoxSpec, CylinderSpec, Scenario, WallSpec
 
-ROBOT_RADIUS_M = 0.17
+ROBOT_RADIUS_M = RobotConfig().radius_m  # the simulated Spark is the robot the config describes
 MOVING_SPEED_M_S = 0.01  # a speed (or speed toward the other body) above this counts as moving
 FRONT_HALF_ANGLE_DEG = 45.0  # the robot drives into what it meets within this of its heading
 _SPAWN_TRIES = 2000

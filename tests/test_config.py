@@ -74,6 +74,8 @@ def leaf_paths(cls: type, prefix: str = "") -> list[str]:
     out: list[str] = []
     hints = typing.get_type_hints(cls)
     for f in fields(cls):
+        if f.metadata.get("derived"):
+            continue  # set by another key (schema.derived), not in the file
         if is_dataclass(hints[f.name]):
             out += leaf_paths(hints[f.name], f"{prefix}{f.name}.")
         else:
@@ -97,6 +99,31 @@ def leaf_paths(cls: type, prefix: str = "") -> list[str]:
 def test_unknown_key_is_named_with_a_hint(tmp_path, capsys, text, fragments) -> None:
     cfg = write(tmp_path / "robot.yaml", text)
     cli_error(capsys, show(cfg), str(cfg), *fragments)
+
+
+@pytest.mark.parametrize(
+    ("text", "key", "origin"),
+    [
+        ("dwa:\n  robot_radius_m: 0.18\n", "dwa.robot_radius_m", "robot.radius_m"),
+        ("shield:\n  robot_radius: 0.18\n", "shield.robot_radius", "robot.radius_m"),
+        ("shield:\n  period: 0.1\n", "shield.period", "loop.control_hz"),
+        ("dwa:\n  window_dt: 0.1\n", "dwa.window_dt", "loop.control_hz"),
+    ],
+)
+def test_a_shared_value_is_set_in_one_place_only(tmp_path, capsys, text, key, origin) -> None:
+    """The footprint and the control period exist once; the stages' copies follow them."""
+    cfg = write(tmp_path / "robot.yaml", text)
+    cli_error(capsys, show(cfg), str(cfg), f"'{key}' is not set here", f"'{origin}'")
+    cli_error(capsys, show(DEFAULT_CONFIG_PATH, "--set", f"{key}=0.1"),
+              f"'{key}' follows '{origin}'")
+
+
+def test_the_stages_follow_the_footprint_and_the_control_rate(tmp_path) -> None:
+    cfg = write(tmp_path / "robot.yaml", "robot:\n  radius_m: 0.25\nloop:\n  control_hz: 10\n")
+    c = load_config(cfg).config
+    assert c.dwa.robot_radius_m == c.shield.robot_radius == 0.25
+    assert c.dwa.window_dt == c.shield.period == pytest.approx(0.1)
+    assert Config().dwa.robot_radius_m == Config().shield.robot_radius == Config().robot.radius_m
 
 
 @pytest.mark.parametrize(

@@ -79,3 +79,19 @@ def test_shield_interventions_are_counted_every_cycle_but_logged_once_per_run_of
     ctx = step.prepare(1.05, moving, blocked)
     step.certify(Twist(0.3, 0.0), ctx)
     assert len(caplog.records) == len(step.interventions) + 1  # a new run: logged again
+
+
+def test_the_camera_blind_zone_reaches_the_shield_so_the_strict_mode_works_on_the_robot():
+    """With shield.blind_zone occupied, space nearer than the camera's minimum range counts as
+    occupied: the world model's blind range must get to the shield, with the tracks' ids."""
+    strict = load_config(None, ["shield.blind_zone=occupied"]).config
+    angles = np.linspace(-0.75, 0.75, 90)
+    world = WorldState(0.0, np.full(90, np.inf), np.zeros(90, bool), angles, np.zeros((0, 2)),
+                       [track(7, (2.0, 2.0), (0.0, 0.0))], True, blind_range=np.full(90, 0.6))
+    for config, passed in ((strict, False), (load_config(None, []).config, True)):
+        step = PlanningStep((3.0, 0.0), config, None, "DWA")
+        ctx = step.prepare(0.0, Odometry(v=0.2), world)
+        assert ctx is not None and ctx.shield_world.track_ids == (7,)
+        np.testing.assert_array_equal(ctx.shield_world.blind_range, world.blind_range)
+        command = step.certify(Twist(0.2, 0.0), ctx)
+        assert (command == Twist(0.2, 0.0)) is passed

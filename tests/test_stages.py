@@ -15,8 +15,9 @@ from hypothesis import strategies as st
 
 from runtime.config import LimitsConfig
 from runtime.drive import STILL_FOR_S, DriveJob, HoldJob, Segment
+from runtime.geometry import wrap_angle
 from runtime.limits import apply_limits
-from runtime.odometry import advance, wrap_angle
+from runtime.odometry import advance
 from runtime.types import (
     STOP,
     BaseStatus,

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from scipy.optimize import linear_sum_assignment
 
+from runtime.planning_step import predict_tracks_base
 from runtime.tracking import Clusters, Tracker, TrackerConfig, cluster_points, cv_matrices
 from sim_stub.orca import Circle, Polygon
 from sim_stub.scenario import load_scenario
@@ -120,14 +121,11 @@ def test_constant_velocity_target_velocity_converges():
     assert tracks[0].confirmed and tracks[0].id == 1
     assert np.mean(errs[-15:]) < 0.1
     assert errs[0] > 0.8  # born with velocity 0
-    vel_sd = [np.sqrt(np.trace(x.covariance[2:, 2:])) for x in tr.predict(t)]
-    assert vel_sd[0] < 0.3 * TrackerConfig().initial_speed_sigma_m_s
-    # prediction moves it along
-    p = tr.predict(t + 1.0)[0]
-    np.testing.assert_allclose(p.position, tracks[0].position + tracks[0].velocity, atol=1e-9)
-    assert p.covariance[0, 0] > tracks[0].covariance[0, 0]
-    pos, sig = tr.predict_positions(t, 0.5, 3)
-    assert pos.shape == (1, 3, 2) and np.all(np.diff(sig[0]) > 0)
+    vel_sd = np.sqrt(np.trace(tracks[0].covariance[2:, 2:]))
+    assert vel_sd < 0.3 * TrackerConfig().initial_speed_sigma_m_s
+    # the planner's prediction (base_link at the odom origin) moves it along, std growing
+    pos, std, _ = predict_tracks_base(tracks, (0.0, 0.0, 0.0), 0.0, 0.5, 2)
+    assert pos.shape == (1, 3, 2) and np.all(np.diff(std[0]) > 0)
     np.testing.assert_allclose(pos[0, 2], tracks[0].position + tracks[0].velocity, atol=1e-9)
 
 
