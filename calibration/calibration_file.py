@@ -18,10 +18,10 @@ from pathlib import Path
 
 import yaml
 
-from runtime.calibration_schema import Calibration, CameraMount, OdometryCalibration
-from runtime.config import DEFAULT_CALIBRATION_PATH, render_calibration
+from runtime.config.calibration import Calibration, CameraMount, OdometryCalibration
+from runtime.config.schema import build, to_plain
+from runtime.config.settings import DEFAULT_CALIBRATION_PATH, render_calibration
 from runtime.errors import ConfigError, UserError
-from runtime.schema import build, to_plain
 
 
 def rounded(cal: Calibration) -> Calibration:

@@ -19,7 +19,7 @@ from calibration.charuco import (
     observe_board,
 )
 from calibration.floor_fit import FloorFit, FloorFitConfig, NoFloorError, fit_floor_frames
-from runtime.calibration_schema import CameraMount
+from runtime.config.calibration import CameraMount
 from runtime.errors import UserError
 from runtime.types import DepthIntrinsics
 

@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
-from runtime.calibration_schema import CameraMount
+from runtime.config.calibration import CameraMount
 from runtime.geometry import R_LINK_OPTICAL, rpy_matrix
 from runtime.types import DepthIntrinsics
 

@@ -23,7 +23,7 @@ from calibration.floor_fit import (
     up_in_optical,
 )
 from calibration.odometry_fit import RunTotals
-from runtime.calibration_schema import CameraMount, OdometryCalibration
+from runtime.config.calibration import CameraMount, OdometryCalibration
 from runtime.geometry import R_LINK_OPTICAL, rpy_matrix
 from runtime.types import DepthIntrinsics
 

@@ -15,10 +15,10 @@ from pathlib import Path
 from typing import Any
 
 from calibration.calibration_file import output_path, write_calibration
-from runtime.app import on_stop_signals
-from runtime.calibration_schema import Calibration
-from runtime.cli_args import add_config_args, finite_float, int_at_least
-from runtime.config import LoadedConfig, load_config
+from runtime.cli.app import on_stop_signals
+from runtime.cli.args import add_config_args, finite_float, int_at_least
+from runtime.config.calibration import Calibration
+from runtime.config.settings import LoadedConfig, load_config
 from runtime.errors import UserError
 
 MIN_FRAMES = 5
@@ -78,12 +78,12 @@ def _depth_frames(args: argparse.Namespace, loaded: LoadedConfig):
     from calibration.frames import collect_depth
 
     if args.recording is not None:
-        from drivers.realsense_playback import PlaybackDepthSource
+        from drivers.realsense.playback import PlaybackDepthSource
 
         source: Any = PlaybackDepthSource(args.recording)
         where, skip = str(args.recording), 0
     else:
-        from runtime.app import open_depth_source
+        from runtime.cli.app import open_depth_source
 
         source = open_depth_source(loaded.config.depth, str(loaded.config_path))
         if source is None:
@@ -202,7 +202,7 @@ class ConsoleOperator:
 
 def _open_runner(loaded: LoadedConfig):
     from calibration.odometry_runs import BaseRunner, RunConfig
-    from drivers.spark_link import SparkBaseLink
+    from drivers.spark.link import SparkBaseLink
 
     link = SparkBaseLink(loaded.config.base, loaded.calibration.odometry)
     link.open()

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from runtime.calibration_schema import CameraMount
+from runtime.config.calibration import CameraMount
 from runtime.geometry import R_LINK_OPTICAL, rpy_matrix
 from runtime.types import DepthIntrinsics
 

@@ -16,7 +16,7 @@ import numpy as np
 import pyrealsense2 as rs
 
 from drivers.depth_source import DepthSource
-from runtime.config import DepthConfig
+from runtime.config.settings import DepthConfig
 from runtime.errors import DeviceError, UserError
 from runtime.types import DepthIntrinsics
 

@@ -33,7 +33,7 @@ from calibration.odometry_fit import (
     m_per_tick,
     umbmark,
 )
-from runtime.calibration_schema import OdometryCalibration
+from runtime.config.calibration import OdometryCalibration
 from runtime.errors import UserError
 from runtime.types import STOP, Twist, WheelIncrement
 
@@ -45,7 +45,7 @@ class RunCutShort(UserError):
 
 
 class Link(Protocol):
-    """What the runner needs from `drivers.spark_link.SparkBaseLink`."""
+    """What the runner needs from `drivers.spark.link.SparkBaseLink`."""
 
     @property
     def last_feedback_time(self) -> float | None: ...

@@ -44,7 +44,7 @@ import torch
 
 from export.mlp import ACTIVATIONS, MLPActor, mlp_from_state
 from runtime.errors import UserError
-from runtime.obs_spec import ObsSpec, SpecError, with_action_box
+from runtime.policy.obs_spec import ObsSpec, SpecError, with_action_box
 
 FORMAT = "safemove-actor"
 FORMAT_VERSION = 1

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from runtime.errors import UserError
-from runtime.obs_spec import PRESETS, ObsSpec, load_spec
+from runtime.policy.obs_spec import PRESETS, ObsSpec, load_spec
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -3,8 +3,8 @@
 Steps: the legacy TorchScript-based exporter (`dynamo=False`: offline, deterministic, and it
 takes TorchScript modules; the dynamo exporter would also need onnxscript), input `obs`
 (batch, N) and output `action` (batch, 2), opset 17; the spec JSON and the provenance JSON
-into the metadata (`runtime.policy.META_SPEC`, `META_PROVENANCE`); the full onnx checker; the
-runtime's own loader (`runtime.policy.Policy`: names, shapes, spec, probe); parity, i.e. max
+into the metadata (`runtime.policy.actor.META_SPEC`, `META_PROVENANCE`); the full onnx checker; the
+runtime's own loader (`runtime.policy.actor.Policy`: names, shapes, spec, probe); parity, i.e. max
 |torch − onnxruntime| over 1,000 random observations (uniform in the spec's bounds) and 1,000
 recorded ones (`sim_stub.recorded_observations` through the CLI, or the user's file), each
 run batch-1 as in the loop, failing above 1e-5; latency p50/p99 of batch-1 inference on the
@@ -37,7 +37,7 @@ import torch
 from export.checkpoint import LoadedActor
 from export.output import check_output, int8_path, write_atomically
 from runtime.errors import UserError
-from runtime.policy import (
+from runtime.policy.actor import (
     INPUT_NAME,
     META_PROVENANCE,
     META_SPEC,

@@ -23,14 +23,14 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from runtime.config import Calibration, Config
-from runtime.depth_guard import DepthGuard
-from runtime.limits import apply_limits
-from runtime.odometry_ekf import OdometryEKF
-from runtime.perception import FloorVerdict
-from runtime.pose_history import PoseHistory
+from runtime.config.settings import Calibration, Config
+from runtime.odometry.ekf import OdometryEKF
+from runtime.odometry.pose_history import PoseHistory
+from runtime.perception.depth_guard import DepthGuard
+from runtime.perception.depth_points import FloorVerdict
+from runtime.perception.world_model import WorldModel, WorldState
+from runtime.safety.limits import apply_limits
 from runtime.types import STOP, DepthFrame, Odometry, Prepared, Twist, WheelIncrement
-from runtime.world_model import WorldModel, WorldState
 
 PIPELINE_STAGES = ("odometry", "perception", "memory", "tracking", "job", "limits")
 

@@ -26,7 +26,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TextIO
 
-from runtime.cli_args import finite_float
+from runtime.cli.args import finite_float
 from sim_stub.base_sim import START_MODES, BasePhysics, Event, SparkBaseSim, noise_bytes
 
 READ_CHUNK = 4096

@@ -2,7 +2,7 @@
 
 No I/O and no clocks: the caller passes time in (`receive(data, t)`, `step(dt)`), so unit tests run
 the model faster than real time and the pty emulator (`sim_stub.base_emulator`) runs it on the
-host's monotonic clock. All wire handling goes through `drivers.spark_protocol`.
+host's monotonic clock. All wire handling goes through `drivers.spark.protocol`.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import random
 from dataclasses import dataclass
 from typing import Any
 
-from drivers.spark_protocol import (
+from drivers.spark.protocol import (
     CMD_FEEDBACK,
     CMD_QUERY,
     CMD_WHEEL_SPEED,

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from drivers.depth_source import D435_848x480, DepthIntrinsics
-from runtime.config import CameraMount
+from runtime.config.settings import CameraMount
 from runtime.geometry import R_LINK_OPTICAL, rpy_matrix
 
 F32 = np.float32

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from runtime.config import LoadedConfig, load_config
+from runtime.config.settings import LoadedConfig, load_config
 from runtime.pipeline import Pipeline
 from sim_stub.lockstep import LockstepEpisode
 from sim_stub.scenario import load_scenario
@@ -69,10 +69,10 @@ def make_job(settings: EvalSettings, goal_odom: tuple[float, float], loaded: Loa
     refinement rounds and shield candidates instead of wall time (no clock): an episode's
     result does not depend on how busy the machine is."""
     if settings.planner == "dwa":
-        from runtime.dwa_job import DWAJob
+        from runtime.jobs.dwa import DWAJob
 
         return DWAJob(goal_odom, loaded.config, None)
-    from runtime.safemove_job import safemove_job
+    from runtime.jobs.safemove import safemove_job
 
     return safemove_job(settings.model, goal_odom, loaded.config, None)
 

@@ -5,7 +5,7 @@ moves the robot and streams real feedback frames, which go through the real code
 (`FrameParser`, `FeedbackConverter`) into wheel increments; the renderer produces D435 frames;
 the command a cycle of `Pipeline.step` passed reaches the base as a wheel-speed frame, as
 `SparkBaseLink` would send it. The evaluation (`safemove eval`) and the training environment
-(`train/env.py`) run the runtime's pipeline on what this delivers, so a policy is trained on
+(`sim_stub/train/env.py`) run the runtime's pipeline on what this delivers, so a policy is trained on
 what it is scored on and what runs on the robot. Events fall on a common clock: base ticks every
 20 ms, depth frames at `fps`, control cycles at `loop.control_hz`. No wall clock is read.
 """
@@ -15,15 +15,15 @@ from __future__ import annotations
 import math
 
 from drivers.depth_source import D435_848x480
-from drivers.spark_feedback import FeedbackConverter
-from drivers.spark_protocol import (
+from drivers.spark.feedback import FeedbackConverter
+from drivers.spark.protocol import (
     BASE_TO_HOST,
     FrameParser,
     decode_feedback,
     twist_to_wheel_ticks,
     wheel_speed_frame,
 )
-from runtime.config import Calibration, Config
+from runtime.config.settings import Calibration, Config
 from runtime.pipeline import CycleInput
 from runtime.types import DepthFrame, DepthIntrinsics, Twist, WheelIncrement
 from sim_stub.base_sim import BasePhysics, SparkBaseSim

@@ -18,10 +18,10 @@ from dataclasses import replace
 import numpy as np
 
 from drivers.depth_source import D435_848x480
-from runtime.config import Calibration, Config
-from runtime.obs_spec import ActionSpec, ObsSpec
+from runtime.config.settings import Calibration, Config
+from runtime.jobs.safemove import SafeMoveJob
 from runtime.pipeline import Pipeline
-from runtime.safemove_job import SafeMoveJob
+from runtime.policy.obs_spec import ActionSpec, ObsSpec
 from runtime.types import DepthIntrinsics
 from sim_stub.lockstep import LockstepEpisode
 

@@ -11,8 +11,8 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from drivers.depth_source import D435_848x480
-from drivers.realsense_record import DepthRecorder
-from runtime.config import CameraMount, LimitsConfig
+from drivers.realsense.record import DepthRecorder
+from runtime.config.settings import CameraMount, LimitsConfig
 from runtime.types import DepthFrame, Twist
 from sim_stub.depth_render import DepthRenderer
 from sim_stub.scenario import Scenario

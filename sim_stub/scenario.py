@@ -5,7 +5,7 @@ A scenario names the area, where the robot starts, the goal points it may be sen
 mistake in a file is one line naming the file and the key (`runtime.errors.ConfigError`).
 
 Lists (`goals`, `obstacles`) are checked here item by item with keys like `goals[2]` and
-`obstacles[1].size`; everything else goes through `runtime.schema.build`.
+`obstacles[1].size`; everything else goes through `runtime.config.schema.build`.
 """
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from runtime.config.schema import build, load_yaml_file, setting
 from runtime.errors import ConfigError
-from runtime.schema import build, load_yaml_file, setting
 
 SCENARIO_DIR = Path(__file__).resolve().parent / "scenarios"
 
@@ -126,7 +126,7 @@ class Scenario:
     crowd: CrowdSpec = dataclasses.field(
         default_factory=CrowdSpec, metadata={"doc": "the ORCA crowd"}
     )
-    # Lists, validated by parse_scenario (not by runtime.schema.build):
+    # Lists, validated by parse_scenario (not by runtime.config.schema.build):
     goals: tuple[tuple[float, float], ...] = ()
     obstacles: tuple[ObstacleSpec, ...] = ()
     source: str = ""

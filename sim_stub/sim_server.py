@@ -25,7 +25,7 @@ from typing import Any
 
 from drivers.depth_source import D435_848x480
 from drivers.sim_depth_link import encode_frame, frame_digest
-from runtime.config import load_config
+from runtime.config.settings import load_config
 from runtime.errors import UserError
 from runtime.types import DepthFrame
 from sim_stub.base_emulator import PtyBaseEmulator

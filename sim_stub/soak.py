@@ -83,7 +83,7 @@ def soak(args: argparse.Namespace) -> dict[str, Any]:
             event = next(e for e in sim.history if e.get("event") == "scenario")
             goal_world = args.goal_world if args.goal_world is not None else event["goal"]
             gx, gy = goal_in_odom(tuple(event["start"]), goal_world)
-            cmd = [sys.executable, "-m", "runtime.cli", "run", "--planner", args.planner,
+            cmd = [sys.executable, "-m", "runtime.cli.main", "run", "--planner", args.planner,
                    "--goal", f"{gx}", f"{gy}", "--set", f"base.port={sim.link}",
                    "--set", "depth.source=sim", "--set", f"depth.sim_socket={sim.depth_socket}",
                    *(["--model", str(args.model)] if args.model else []),

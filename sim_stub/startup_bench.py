@@ -73,7 +73,7 @@ def bench_startup(runs: int, planner: str, model: Path | None) -> dict[str, Any]
           socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as notify):
         notify_path = str(Path(tmp) / "notify.sock")
         notify.bind(notify_path)
-        cmd = [sys.executable, "-m", "runtime.cli", "run", "--planner", planner,
+        cmd = [sys.executable, "-m", "runtime.cli.main", "run", "--planner", planner,
                *(["--goal", "50", "0"] if planner != "hold" else []),
                *(["--model", str(model)] if model is not None else []),
                "--set", f"base.port={sim.link}", "--set", "depth.source=sim",

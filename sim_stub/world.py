@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from runtime.config import LimitsConfig, RobotConfig
+from runtime.config.settings import LimitsConfig, RobotConfig
 from runtime.errors import ConfigError
 from sim_stub.orca import Body, Circle, Crowd, OrcaParams, Shape, rectangle, segment_box
 from sim_stub.scenario import BoxSpec, CylinderSpec, Scenario, WallSpec

@@ -94,7 +94,7 @@ run() {
 }
 
 for f in pyproject.toml systemd/safemove.service systemd/99-spark-base.rules \
-         runtime/default_config.yaml calibration/spark_default.yaml; do
+         runtime/config/default_config.yaml calibration/spark_default.yaml; do
     [ -f "$SOURCE/$f" ] || die "'$SOURCE/$f' is missing (is --source a SafeMove checkout?)"
 done
 
@@ -176,7 +176,7 @@ install_if_missing() {  # <source file> <destination>
 if [ -e "$D_ETC/config.yaml" ] || [ -L "$D_ETC/config.yaml" ]; then
     echo "kept existing $D_ETC/config.yaml"
 else
-    install_if_missing "$SOURCE/runtime/default_config.yaml" "$D_ETC/config.yaml"
+    install_if_missing "$SOURCE/runtime/config/default_config.yaml" "$D_ETC/config.yaml"
     # The default config uses the vendor calibration (calibration_file: ''); a fresh install
     # points it at the per-robot copy next to it, which calibration tools update in place.
     if grep -q "^calibration_file: *''" "$D_ETC/config.yaml"; then

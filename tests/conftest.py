@@ -18,7 +18,7 @@ from sim_stub.emulator_process import EmulatorProcess
 # --- markers by file -----------------------------------------------------------------------------
 
 # Deterministic lock-stepped simulation: episodes of sim_stub.lockstep (through sim_stub.evaluate
-# or train.env, in this process or in a `safemove eval` / `safemove train` child) on simulated
+# or sim_stub.train.env, in this process or in a `safemove eval` / `safemove train` child) on simulated
 # time, no wall clock and no real-time peer process. The HIL files are tests/test_hil_*.py.
 SIM_FILES = frozenset({"test_evaluate.py", "test_train.py"})
 
@@ -63,7 +63,7 @@ class SafemoveProcess:
 
     def __init__(self, args: list[str], env: dict[str, str] | None = None) -> None:
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "runtime.cli", *args],
+            [sys.executable, "-m", "runtime.cli.main", *args],
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,

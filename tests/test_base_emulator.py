@@ -21,7 +21,7 @@ from typing import Any
 import pytest
 import serial
 
-from drivers.spark_protocol import (
+from drivers.spark.protocol import (
     BASE_TO_HOST,
     FEEDBACK_LEN_IMU,
     FEEDBACK_LEN_NO_IMU,

@@ -16,9 +16,9 @@ import pytest
 from calibration.camera import BoardInput, calibrate_camera
 from calibration.charuco import BoardPlacement, BoardSpec
 from drivers.depth_source import D435_848x480
-from runtime.calibration_schema import CameraMount
-from runtime.cli import main
-from runtime.config import load_calibration, render_calibration
+from runtime.cli.main import main
+from runtime.config.calibration import CameraMount
+from runtime.config.settings import load_calibration, render_calibration
 from runtime.errors import UserError
 from runtime.geometry import R_LINK_OPTICAL, rpy_matrix
 from runtime.types import DepthIntrinsics

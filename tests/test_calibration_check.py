@@ -13,9 +13,9 @@ from test_calibration_camera import clutter, write_recording
 from calibration.calibration_file import write_calibration
 from calibration.check import check_camera
 from drivers.depth_source import D435_848x480
-from runtime.calibration_schema import Calibration, CameraMount, OdometryCalibration
-from runtime.cli import main
-from runtime.config import load_calibration, render_calibration
+from runtime.cli.main import main
+from runtime.config.calibration import Calibration, CameraMount, OdometryCalibration
+from runtime.config.settings import load_calibration, render_calibration
 from runtime.errors import ConfigError
 from sim_stub.depth_render import DepthRenderer
 

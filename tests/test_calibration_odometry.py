@@ -21,8 +21,8 @@ from calibration.odometry_fit import (
     umbmark,
 )
 from calibration.odometry_runs import BaseRunner, OdometryPlan, RunConfig, calibrate_odometry
-from drivers.spark_link import SparkBaseLink
-from runtime.config import load_calibration, load_config, render_calibration
+from drivers.spark.link import SparkBaseLink
+from runtime.config.settings import load_calibration, load_config, render_calibration
 from sim_stub.emulator_process import EmulatorProcess
 
 NOMINAL_MPT = 0.00028885
@@ -141,7 +141,7 @@ def test_run_cut_short_by_stale_feedback_leaves_the_file(emulator, tmp_path):
     path.write_text(render_calibration(), encoding="utf-8")
     before = path.read_text()
     proc = subprocess.Popen(
-        [sys.executable, "-m", "runtime.cli", "calibrate", "odometry",
+        [sys.executable, "-m", "runtime.cli.main", "calibrate", "odometry",
          "--set", f"base.port={emulator.link}", "--set", f"calibration_file={path}"],
         stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from runtime.cli import main, parse_args
+from runtime.cli.main import main, parse_args
 
 
 @pytest.mark.parametrize(

@@ -17,8 +17,8 @@ from typing import Any
 
 import pytest
 
-from runtime.cli import main
-from runtime.config import (
+from runtime.cli.main import main
+from runtime.config.settings import (
     DEFAULT_CALIBRATION_PATH,
     DEFAULT_CONFIG_PATH,
     Calibration,

@@ -6,7 +6,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from runtime.corridor import CorridorConfig, safe_corridor
+from runtime.planning.corridor import CorridorConfig, safe_corridor
 
 
 def straight(length: float = 2.0, steps: int = 21) -> np.ndarray:

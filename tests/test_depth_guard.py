@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from drivers.depth_source import D435_848x480
-from runtime.config import CameraMount, Config
-from runtime.depth_guard import DepthGuard
+from runtime.config.settings import CameraMount, Config
+from runtime.perception.depth_guard import DepthGuard
+from runtime.perception.world_model import WorldModel
 from runtime.types import DepthFrame, Odometry
-from runtime.world_model import WorldModel
 from sim_stub.depth_render import DepthRenderer, Scene, wall
 from sim_stub.sim_server import BASE_LINK_HEIGHT_M
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from drivers.depth_source import D435_848x480
-from runtime.config import CameraMount
+from runtime.config.settings import CameraMount
 from sim_stub.depth_render import Box, Cylinder, DepthRenderer, Scene, wall
 
 K = D435_848x480

@@ -10,9 +10,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from runtime.config import LimitsConfig
-from runtime.dwa import DWAConfig, plan, plan_coarse, prepare, rollout
-from runtime.dwa_reference import plan_reference, random_world
+from runtime.config.settings import LimitsConfig
+from runtime.planning.dwa import DWAConfig, plan, plan_coarse, prepare, rollout
+from sim_stub.dwa_reference import plan_reference, random_world
 
 LIM = LimitsConfig()
 CFG = DWAConfig()

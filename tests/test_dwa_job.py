@@ -7,12 +7,12 @@ import math
 import numpy as np
 import pytest
 
-from runtime.cli import main
-from runtime.config import load_config
-from runtime.planning_step import ARRIVAL_RADIUS_M, PlanningStep, predict_tracks_base
-from runtime.tracking import Track
+from runtime.cli.main import main
+from runtime.config.settings import load_config
+from runtime.perception.tracking import Track
+from runtime.perception.world_model import WorldState
+from runtime.planning.planning_step import ARRIVAL_RADIUS_M, PlanningStep, predict_tracks_base
 from runtime.types import Odometry, Twist
-from runtime.world_model import WorldState
 
 
 def track(tid: int, pos, vel, confirmed=True, pos_var=0.01, vel_var=0.04) -> Track:

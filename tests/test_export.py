@@ -20,9 +20,9 @@ onnx = pytest.importorskip("onnx")
 
 from export.checkpoint import save_actor_checkpoint
 from export.mlp import MLPActor
-from runtime.cli import main
-from runtime.obs_spec import PRESETS
-from runtime.policy import META_PROVENANCE, META_SPEC, Policy, PolicyConfig
+from runtime.cli.main import main
+from runtime.policy.actor import META_PROVENANCE, META_SPEC, Policy, PolicyConfig
+from runtime.policy.obs_spec import PRESETS
 from sim_stub.recorded_observations import recorded_observations
 
 SAFEMOVE = PRESETS["safemove"]
@@ -382,7 +382,7 @@ def test_the_real_process_answers_bad_files_with_one_line(tmp_path, observations
              ([str(tmp_path / "a.pth"), "-o", "/dev/full", "--observations",
                observations["drl"]], "/dev/full: exists and is not a regular file")]
     for args, says in cases:
-        proc = subprocess.run([sys.executable, "-m", "runtime.cli", "export", *args, "--spec",
+        proc = subprocess.run([sys.executable, "-m", "runtime.cli.main", "export", *args, "--spec",
                                "drl"], capture_output=True, text=True, timeout=300, check=False)
         lines = proc.stderr.strip().splitlines()
         assert proc.returncode == 2 and len(lines) == 1, proc.stderr

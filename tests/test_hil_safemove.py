@@ -50,7 +50,7 @@ import pytest
 from hil_judge import contacts, odom_goal
 
 from drivers.depth_source import D435_848x480
-from runtime.calibration_schema import CameraMount
+from runtime.config.calibration import CameraMount
 from sim_stub.emulator_process import EmulatorProcess
 from sim_stub.scenario import load_scenario
 from sim_stub.sim_server import contact_fields
@@ -127,7 +127,7 @@ def random_actor(tmp_path: Path) -> Path:
     from export.checkpoint import load_checkpoint, save_actor_checkpoint
     from export.mlp import MLPActor
     from export.onnx_export import export_actor
-    from runtime.obs_spec import PRESETS
+    from runtime.policy.obs_spec import PRESETS
     from sim_stub.recorded_observations import recorded_observations
 
     spec = PRESETS["safemove"]
@@ -157,7 +157,7 @@ def test_random_actor_drives_60_s_in_scenario_b_without_driving_into_what_it_see
                 "--set", f"depth.sim_socket={sim.depth_socket}",
                 "--set", "loop.stats_interval_s=0"]
         with log_path.open("w") as err:
-            proc = subprocess.Popen([sys.executable, "-m", "runtime.cli", *args],
+            proc = subprocess.Popen([sys.executable, "-m", "runtime.cli.main", *args],
                                     stdout=subprocess.PIPE, stderr=err, text=True,
                                     env={**os.environ, "PYTHONUNBUFFERED": "1"})
         try:

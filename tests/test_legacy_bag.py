@@ -15,8 +15,8 @@ import pytest
 # pytest's default import mode puts tests/ (no __init__.py) on sys.path
 from legacy_bag import write_legacy_depth_bag
 
-from drivers.realsense_playback import PlaybackDepthSource
-from runtime.config import CameraMount, LimitsConfig
+from drivers.realsense.playback import PlaybackDepthSource
+from runtime.config.settings import CameraMount, LimitsConfig
 from runtime.types import Twist
 from sim_stub.recording import simulated_frames
 from sim_stub.scenario import load_scenario

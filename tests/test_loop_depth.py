@@ -7,10 +7,10 @@ import math
 import numpy as np
 from doubles import FreshFeedbackLink, SimClock
 
-from runtime.config import Calibration, Config
-from runtime.drive import HoldJob
-from runtime.loop import ControlLoop, DepthStats
-from runtime.sdnotify import SystemdNotifier
+from runtime.config.settings import Calibration, Config
+from runtime.jobs.drive import HoldJob
+from runtime.process.loop import ControlLoop, DepthStats
+from runtime.process.sdnotify import SystemdNotifier
 from runtime.types import DepthFrame, DepthIntrinsics
 
 K = DepthIntrinsics(4, 3, 2.0, 2.0, 2.0, 1.5)
@@ -67,7 +67,7 @@ def test_stale_depth_degrades_the_loop_and_fresh_depth_recovers_it():
 
 def test_floor_check_without_a_floor_plane_says_so_instead_of_printing_nan(caplog):
     """A wall filling the view leaves no near-vertical plane to fit: no 'tilt nan°'."""
-    from runtime.perception import FloorVerdict
+    from runtime.perception.depth_points import FloorVerdict
 
     loop = ControlLoop(Config(), Calibration(), FreshFeedbackLink(), HoldJob(),
                        SystemdNotifier(None), depth=ScheduledDepth(SimClock()))

@@ -10,7 +10,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from runtime.obs_spec import (
+from runtime.policy.obs_spec import (
     PRESETS,
     ActionSpec,
     DWABlock,
@@ -25,7 +25,7 @@ TERMS = ("heading", "clearance", "velocity", "density")
 
 
 def dwa_result(terms: dict[str, float], steps: int = 30) -> SimpleNamespace:
-    """A DWA result (duck-typed like runtime.dwa.DWAResult) whose best sample (index 1) has
+    """A DWA result (duck-typed like runtime.planning.dwa.DWAResult) whose best sample (index 1) has
     the given normalised cost terms."""
     t = (np.arange(steps) + 1) * 0.1
     path = np.stack([0.3 * t, 0.1 * t, np.zeros(steps)], axis=1)

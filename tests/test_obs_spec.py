@@ -9,7 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from runtime.obs_spec import (
+from runtime.policy.obs_spec import (
     PRESETS,
     ActionSpec,
     CorridorBlock,

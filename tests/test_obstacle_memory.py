@@ -7,9 +7,9 @@ import math
 import numpy as np
 
 from drivers.depth_source import D435_848x480
-from runtime.config import CameraMount
-from runtime.obstacle_memory import ObstacleMemory, ObstacleMemoryConfig
-from runtime.perception import Perception
+from runtime.config.settings import CameraMount
+from runtime.perception.depth_points import Perception
+from runtime.perception.obstacle_memory import ObstacleMemory, ObstacleMemoryConfig
 from sim_stub.depth_render import Cylinder, DepthRenderer, Scene
 from sim_stub.sim_server import BASE_LINK_HEIGHT_M
 

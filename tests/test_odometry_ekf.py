@@ -11,19 +11,19 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.spark_feedback import FeedbackConverter
-from drivers.spark_protocol import (
+from drivers.spark.feedback import FeedbackConverter
+from drivers.spark.protocol import (
     BASE_TO_HOST,
     FrameParser,
     decode_feedback,
     twist_to_wheel_ticks,
     wheel_speed_frame,
 )
-from runtime.config import OdometryCalibration
+from runtime.config.schema import build, render_documented
+from runtime.config.settings import OdometryCalibration
 from runtime.errors import ConfigError
-from runtime.odometry import advance
-from runtime.odometry_ekf import OdometryEKF, OdometryFilterConfig
-from runtime.schema import build, render_documented
+from runtime.odometry.dead_reckoning import advance
+from runtime.odometry.ekf import OdometryEKF, OdometryFilterConfig
 from runtime.types import BaseStatus, CliffSensor, Odometry, Proximity, WheelIncrement
 from sim_stub.base_sim import BasePhysics, SparkBaseSim
 
@@ -359,7 +359,7 @@ def test_config_is_a_documented_schema() -> None:
 
 
 def test_closed_form_gate_distance_matches_a_general_solve() -> None:
-    from runtime.odometry_ekf import _mahalanobis2
+    from runtime.odometry.ekf import _mahalanobis2
 
     rng = np.random.default_rng(4)
     for n in (1, 2):

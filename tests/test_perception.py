@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 from drivers.depth_source import D435_848x480
-from drivers.realsense_playback import PlaybackDepthSource
-from runtime.config import CameraMount
-from runtime.perception import FloorVerdict, Perception, PerceptionConfig
+from drivers.realsense.playback import PlaybackDepthSource
+from runtime.config.settings import CameraMount
+from runtime.perception.depth_points import FloorVerdict, Perception, PerceptionConfig
 from runtime.types import DepthFrame, DepthIntrinsics
 from sim_stub.depth_render import Box, Cylinder, DepthRenderer, Scene
 from sim_stub.recording import record

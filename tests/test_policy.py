@@ -9,13 +9,13 @@ import math
 import numpy as np
 import pytest
 
-from runtime.config import Config
+from runtime.config.settings import Config
 from runtime.errors import ConfigError
-from runtime.obs_spec import PRESETS
-from runtime.policy import META_PROVENANCE, META_SPEC, Policy, PolicyConfig
-from runtime.safemove_job import SafeMoveJob
+from runtime.jobs.safemove import SafeMoveJob
+from runtime.perception.world_model import WorldState
+from runtime.policy.actor import META_PROVENANCE, META_SPEC, Policy, PolicyConfig
+from runtime.policy.obs_spec import PRESETS
 from runtime.types import STOP, Odometry
-from runtime.world_model import WorldState
 
 onnx = pytest.importorskip("onnx")
 from onnx import TensorProto, helper, numpy_helper
@@ -107,7 +107,7 @@ def test_run_refuses_a_model_whose_spec_mismatches_with_exit_2(tmp_path, safemov
 
 
 def test_run_safemove_needs_a_model_and_model_needs_safemove(capsys):
-    from runtime.cli import main
+    from runtime.cli.main import main
 
     common = ["--goal", "1", "0", "--set", "depth.source=sim", "--set", "depth.sim_socket=/x"]
     assert main(["run", "--planner", "safemove", *common]) == 2
@@ -195,7 +195,7 @@ def test_goal_reached_stops_and_finishes():
 def test_a_spec_wanting_more_path_points_than_the_dwa_has_is_refused():
     from dataclasses import replace
 
-    from runtime.obs_spec import DWABlock
+    from runtime.policy.obs_spec import DWABlock
 
     policy = FixedPolicy([0, 0])
     policy.spec = replace(SPEC, blocks=(*SPEC.blocks[:3], DWABlock(path_points=50),
@@ -206,7 +206,7 @@ def test_a_spec_wanting_more_path_points_than_the_dwa_has_is_refused():
 
 
 def test_the_probe_observation_builds_for_every_preset_inside_its_bounds():
-    from runtime.policy import probe_observation
+    from runtime.policy.actor import probe_observation
 
     for spec in PRESETS.values():
         obs = probe_observation(spec)

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from drivers.depth_source import D435_848x480, DepthSource
-from drivers.realsense_playback import PlaybackDepthSource
-from drivers.realsense_record import DepthRecorder
-from runtime.config import CameraMount
+from drivers.realsense.playback import PlaybackDepthSource
+from drivers.realsense.record import DepthRecorder
+from runtime.config.settings import CameraMount
 from runtime.errors import UserError
 from sim_stub.depth_render import Box, Cylinder, DepthRenderer, Scene, wall
 

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivers.realsense_playback import PlaybackDepthSource
-from runtime.cli import main
-from runtime.config import CameraMount, LimitsConfig
+from drivers.realsense.playback import PlaybackDepthSource
+from runtime.cli.main import main
+from runtime.config.settings import CameraMount, LimitsConfig
 from runtime.types import Twist
 from sim_stub.recording import simulated_frames
 from sim_stub.scenario import load_scenario

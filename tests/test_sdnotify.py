@@ -1,4 +1,4 @@
-"""runtime.sdnotify against a real AF_UNIX datagram socket standing in for systemd."""
+"""runtime.process.sdnotify against a real AF_UNIX datagram socket standing in for systemd."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from runtime.sdnotify import LOG_EVERY_N_ERRORS, SystemdNotifier
+from runtime.process.sdnotify import LOG_EVERY_N_ERRORS, SystemdNotifier
 
 pytestmark = pytest.mark.skipif(
     not sys.platform.startswith("linux"), reason="sd_notify (abstract sockets) is Linux-only"

@@ -10,9 +10,9 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from runtime.config import LimitsConfig
-from runtime.limits import apply_limits
-from runtime.shield import ShieldConfig, ShieldWorld, certify, shield
+from runtime.config.settings import LimitsConfig
+from runtime.safety.limits import apply_limits
+from runtime.safety.shield import ShieldConfig, ShieldWorld, certify, shield
 from runtime.types import Twist
 
 LIM = LimitsConfig()

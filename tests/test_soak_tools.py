@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from runtime.cli import main
+from runtime.cli.main import main
 from sim_stub.soak import last_line, slope_mb_per_h
 
 

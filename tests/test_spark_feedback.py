@@ -11,10 +11,10 @@ import math
 
 import pytest
 
-from drivers.spark_feedback import FeedbackConverter
-from drivers.spark_protocol import BASE_TO_HOST, Feedback, FrameParser, decode_feedback
-from drivers.spark_protocol import wheel_speed_frame as wheels
-from runtime.config import BaseConfig, OdometryCalibration
+from drivers.spark.feedback import FeedbackConverter
+from drivers.spark.protocol import BASE_TO_HOST, Feedback, FrameParser, decode_feedback
+from drivers.spark.protocol import wheel_speed_frame as wheels
+from runtime.config.settings import BaseConfig, OdometryCalibration
 from runtime.types import BaseStatus, CliffSensor, Proximity, WheelIncrement
 from sim_stub.base_sim import BasePhysics, SparkBaseSim
 from sim_stub.serial_proxy import ByteCorrupter

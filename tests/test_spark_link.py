@@ -8,9 +8,9 @@ import time
 
 import pytest
 
-from drivers import spark_link
-from drivers.spark_link import SparkBaseLink
-from drivers.spark_protocol import (
+from drivers.spark import link as spark_link
+from drivers.spark.link import SparkBaseLink
+from drivers.spark.protocol import (
     CMD_WHEEL_SPEED,
     HOST_TO_BASE,
     STOP_FRAME,
@@ -19,7 +19,8 @@ from drivers.spark_protocol import (
     decode_wheel_speed,
     encode_feedback,
 )
-from runtime.config import BaseConfig, OdometryCalibration
+from runtime.config.calibration import OdometryCalibration
+from runtime.config.devices import BaseConfig
 from runtime.types import Twist
 
 

@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.spark_protocol import (
+from drivers.spark.protocol import (
     BASE_TO_HOST,
     CMD_FEEDBACK,
     CMD_QUERY,

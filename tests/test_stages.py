@@ -13,11 +13,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from runtime.config import LimitsConfig
-from runtime.drive import STILL_FOR_S, DriveJob, HoldJob, Segment
+from runtime.config.settings import LimitsConfig
 from runtime.geometry import wrap_angle
-from runtime.limits import apply_limits
-from runtime.odometry import advance
+from runtime.jobs.drive import STILL_FOR_S, DriveJob, HoldJob, Segment
+from runtime.odometry.dead_reckoning import advance
+from runtime.safety.limits import apply_limits
 from runtime.types import (
     STOP,
     BaseStatus,

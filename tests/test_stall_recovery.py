@@ -6,10 +6,15 @@ import math
 
 import numpy as np
 
-from runtime.stall_recovery import RecoveryConfig, StallRecovery, obstacles_odom, open_heading
-from runtime.tracking import Track
+from runtime.perception.tracking import Track
+from runtime.perception.world_model import WorldState
+from runtime.planning.stall_recovery import (
+    RecoveryConfig,
+    StallRecovery,
+    obstacles_odom,
+    open_heading,
+)
 from runtime.types import Odometry
-from runtime.world_model import WorldState
 
 GOAL = np.array([5.0, 0.0])
 

@@ -242,13 +242,13 @@ def test_install_sh_syntax_and_mode():
 def make_source(tmp_path: Path) -> Path:
     src = tmp_path / "src"
     (src / "systemd").mkdir(parents=True)
-    (src / "runtime").mkdir()
+    (src / "runtime" / "config").mkdir(parents=True)
     (src / "calibration").mkdir()
     (src / "pyproject.toml").write_text('[project]\nname = "safemove-rl"\n')
     shutil.copy(UNIT, src / "systemd" / UNIT.name)
     shutil.copy(RULES, src / "systemd" / RULES.name)
-    (src / "runtime" / "default_config.yaml").write_text("control_hz: 20\n")
-    (src / "runtime" / "loop.py").write_text("# code\n")
+    (src / "runtime" / "config" / "default_config.yaml").write_text("control_hz: 20\n")
+    (src / "runtime" / "pipeline.py").write_text("# code\n")
     (src / "calibration" / "spark_default.yaml").write_text("camera_height_m: 0.3\n")
     # Things that must not be copied to /opt/safemove.
     (src / ".venv" / "bin").mkdir(parents=True)
@@ -285,7 +285,7 @@ def test_install_sh_prefix_layout(tmp_path):
 
     app = prefix / "opt/safemove"
     assert (app / "pyproject.toml").is_file()
-    assert (app / "runtime/loop.py").is_file()
+    assert (app / "runtime/pipeline.py").is_file()
     assert (app / "systemd/safemove.service").is_file()
     for excluded in (".venv", ".git", "runtime/__pycache__"):
         assert not (app / excluded).exists(), excluded
@@ -323,10 +323,10 @@ def test_install_sh_keeps_existing_config_and_calibration(tmp_path):
     assert f"kept existing {etc / 'calibration.yaml'}" in res.stdout
 
     # A second install (upgrade) removes modules deleted from the source.
-    (src / "runtime" / "loop.py").unlink()
+    (src / "runtime" / "pipeline.py").unlink()
     res = install(src, prefix, env)
     assert res.returncode == 0, res.stdout + res.stderr
-    assert not (prefix / "opt/safemove/runtime/loop.py").exists()
+    assert not (prefix / "opt/safemove/runtime/pipeline.py").exists()
 
 
 def test_install_sh_stage_inside_source_does_not_copy_itself(tmp_path):
@@ -358,7 +358,7 @@ def test_install_sh_errors_are_one_line(tmp_path):
 
 def test_install_sh_points_a_fresh_config_at_the_installed_calibration(tmp_path):
     src = make_source(tmp_path)
-    (src / "runtime" / "default_config.yaml").write_text(
+    (src / "runtime" / "config" / "default_config.yaml").write_text(
         "# comment\ncalibration_file: ''\nloop:\n  control_hz: 20.0\n"
     )
     env, _ = fake_tools(tmp_path)

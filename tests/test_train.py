@@ -13,9 +13,9 @@ pytest.importorskip("stable_baselines3")
 
 from gymnasium.utils.env_checker import check_env
 
-from runtime.config import load_config
-from runtime.obs_spec import PRESETS
-from train.env import RewardConfig, SafeMoveEnv
+from runtime.config.settings import load_config
+from runtime.policy.obs_spec import PRESETS
+from sim_stub.train.env import RewardConfig, SafeMoveEnv
 
 SPEC = PRESETS["safemove"]
 

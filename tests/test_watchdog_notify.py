@@ -10,9 +10,9 @@ import time
 import pytest
 from doubles import FreshFeedbackLink
 
-from runtime.config import Calibration, Config
-from runtime.loop import ControlLoop
-from runtime.sdnotify import SystemdNotifier
+from runtime.config.settings import Calibration, Config
+from runtime.process.loop import ControlLoop
+from runtime.process.sdnotify import SystemdNotifier
 from runtime.types import Odometry, Prepared, Twist
 
 pytestmark = pytest.mark.hil

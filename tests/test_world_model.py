@@ -9,10 +9,10 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from drivers.depth_source import D435_848x480
-from runtime.config import CameraMount, Config
-from runtime.obstacle_memory import ObstacleMemory
-from runtime.perception import Perception
-from runtime.tracking import Tracker
+from runtime.config.settings import CameraMount, Config
+from runtime.perception.depth_points import Perception
+from runtime.perception.obstacle_memory import ObstacleMemory
+from runtime.perception.tracking import Tracker
 from sim_stub.depth_render import DepthRenderer
 from sim_stub.scenario import CylinderSpec, load_scenario
 from sim_stub.sim_server import BASE_LINK_HEIGHT_M, scene_from

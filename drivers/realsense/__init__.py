@@ -1,0 +1,1 @@
+"""The RealSense D435: live, playback and recording."""

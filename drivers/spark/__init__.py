@@ -1,0 +1,1 @@
+"""The Spark base: wire protocol, feedback conversion, the pyserial link."""

@@ -1,0 +1,1 @@
+"""The `safemove` command line and the composition root that builds the drivers."""

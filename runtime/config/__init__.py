@@ -1,0 +1,1 @@
+"""The runtime's settings: the schema machinery, the calibration file, the config tree."""

@@ -1,0 +1,163 @@
+"""The SafeMove planner mode (`safemove run --planner safemove --model actor.onnx`).
+
+Each RUNNING cycle: DWA and the track predictions as the DWA mode does them (PlanningStep),
+the safe corridor along DWA's best path when the model's spec has a corridor block, the
+observation by the model's own spec, one actor inference, the action mapped to a twist, and the
+shield on that twist. Non-finite odometry, observation or action makes the cycle a safe stop
+(brake at the limits' deceleration), counted and logged with the reason: the actor never sees a
+non-finite observation and its command never reaches the shield unless it is finite.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import Counter
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from runtime.config.settings import Config
+from runtime.errors import ConfigError, UserError
+from runtime.perception.world_model import WorldState
+from runtime.planning.corridor import CorridorConfig, safe_corridor
+from runtime.planning.planning_step import PlanningContext, PlanningStep
+from runtime.policy.actor import Policy
+from runtime.policy.obs_spec import ObservationBuilder, ObsSpec
+from runtime.types import STOP, Odometry, Prepared, Twist
+
+log = logging.getLogger("safemove.policy")
+
+
+class SpecObserver:
+    """A planning cycle's observation by a spec: the safe corridor along DWA's best path (only
+    when the spec has a corridor block), then the spec's builder. The job and the recorded
+    observations of `safemove export` both use it, so they see the same features."""
+
+    def __init__(self, spec: ObsSpec) -> None:
+        self.spec = spec
+        cor = spec.block("corridor")
+        self._corridor = (None if cor is None
+                          else CorridorConfig(samples=cor.samples, max_width=cor.width_max_m))
+        self._builder = ObservationBuilder(spec)
+
+    def observe(self, ctx: PlanningContext, odom: Odometry, world: WorldState) -> np.ndarray:
+        """The observation (the builder's vector, reused: copy it to keep it)."""
+        corridor = None
+        if self._corridor is not None:
+            corridor = safe_corridor(ctx.dwa.best_path, world.points_base, ctx.track_pos[:, 1:],
+                                     ctx.track_radii, self._corridor)
+        return self._builder.build(ctx.goal_base, odom.v, odom.omega, world, ctx.dwa, corridor)
+
+
+class SafeMoveJob:
+    """Drive to a goal in the odom frame with the TD3 actor, every command through the shield.
+    Without a `policy` the action comes from outside each cycle (`decide(prepared, action)`:
+    the training environment's agent)."""
+
+    name = "safemove"
+
+    def __init__(self, goal_odom: tuple[float, float], config: Config, policy: Policy | None,
+                 clock: Callable[[], float] | None, spec: ObsSpec | None = None) -> None:
+        self._planning = PlanningStep(goal_odom, config, clock, "policy")
+        self._policy = policy
+        if spec is None:
+            if policy is None:
+                raise ValueError("SafeMoveJob needs a policy or a spec")
+            spec = policy.spec
+        self._spec = spec
+        steps = max(1, round(config.dwa.horizon_s / config.dwa.dt))
+        dwa_block = spec.block("dwa")
+        if dwa_block is not None and dwa_block.path_points > steps:
+            source = policy.path if policy is not None else "the actor"
+            raise ConfigError(
+                f"{source}: its spec '{spec.name}' takes {dwa_block.path_points} DWA path"
+                f" points, but the DWA rolls out only {steps} steps (dwa.horizon_s / dwa.dt)")
+        self._observer = SpecObserver(spec)
+        self.nonfinite: Counter[str] = Counter()
+        self._last_bad: str | None = None
+
+    @property
+    def finished(self) -> bool:
+        return self._planning.finished
+
+    @property
+    def reached(self) -> bool:
+        return self._planning.reached
+
+    @property
+    def shield_changed(self) -> bool:
+        """The shield replaced the last decided command."""
+        return self._planning.last_intervened
+
+    def pause(self) -> None:
+        """Nothing to pause: each cycle decides from the present."""
+
+    def prepare(self, now: float, odom: Odometry, world: WorldState | None) -> Prepared:
+        """DWA, the corridor and the observation; no context (hold still) when the goal is
+        reached, there is no world yet, or odometry or the observation is not finite."""
+        if not all(map(math.isfinite, (odom.x, odom.y, odom.theta, odom.v, odom.omega))):
+            self._safe_stop("odometry", f"non-finite odometry {odom}")
+            return Prepared()
+        ctx = self._planning.prepare(now, odom, world)
+        if ctx is None or world is None:
+            return Prepared()
+        obs = self._observer.observe(ctx, odom, world)
+        if not np.all(np.isfinite(obs)):
+            names = self._spec.names()
+            bad = [names[i] for i in np.flatnonzero(~np.isfinite(obs))[:3]]
+            self._safe_stop("observation", f"non-finite features {', '.join(bad)}")
+            return Prepared()
+        return Prepared(ctx, obs)
+
+    def decide(self, prepared: Prepared, action: np.ndarray | None = None) -> Twist:
+        """The actor's action (this job's policy, or `action` from outside) mapped to a twist,
+        through the shield."""
+        if prepared.context is None or prepared.observation is None:
+            return STOP
+        if action is None:
+            if self._policy is None:
+                raise ValueError("SafeMoveJob without a policy: decide() needs the action")
+            action = self._policy.act(prepared.observation)
+        if not np.all(np.isfinite(action)):
+            return self._safe_stop("action", f"non-finite action {np.asarray(action).tolist()}")
+        self._last_bad = None
+        return self._planning.certify(self._spec.action.to_twist(action), prepared.context)
+
+    def step(self, now: float, odom: Odometry, world: WorldState | None) -> Twist:
+        return self.decide(self.prepare(now, odom, world))
+
+    def _safe_stop(self, kind: str, reason: str) -> Twist:
+        """Brake this cycle; log the first cycle of a streak (the count has them all)."""
+        self.nonfinite[kind] += 1
+        if self._last_bad != kind:
+            log.error("safe stop this cycle: %s", reason)
+        self._last_bad = kind
+        return STOP
+
+    def summary(self) -> dict[str, Any]:
+        policy = self._policy
+        return {
+            **self._planning.summary(),
+            "policy": None if policy is None else {
+                "model": str(policy.path),
+                "spec": self._spec.name,
+                "features": self._spec.size,
+                "threads": policy.threads,
+                "provenance": policy.provenance,
+            },
+            "nonfinite_safe_stops": dict(self.nonfinite),
+        }
+
+
+def safemove_job(model: Path | None, goal_odom: tuple[float, float], config: Config,
+                 clock: Callable[[], float] | None) -> SafeMoveJob:
+    """The job for `safemove run --planner safemove`: the model is loaded, validated and warmed
+    up here, before the base is opened, so a bad model refuses to start (exit 2). `clock`: as
+    for PlanningStep (None: budgets by count, for the lock-stepped evaluation)."""
+    if model is None:
+        raise UserError("run --planner safemove: give --model FILE.onnx (written by"
+                        " `safemove export`)")
+    return SafeMoveJob(goal_odom, config, Policy(model, config.policy), clock)

@@ -1,0 +1,1 @@
+"""Wheel increments to pose: the EKF, dead reckoning, the pose history."""

@@ -1,0 +1,1 @@
+"""Local planning: DWA, track prediction, the safe corridor, stall recovery."""

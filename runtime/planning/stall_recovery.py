@@ -1,0 +1,136 @@
+"""Stall recovery for the goal-driven DWA job: when the robot has stood for a while, step away.
+
+DWA is a local planner with a short window: beside a person or an obstacle that blocks the way
+to the goal, every sample that drives on comes closer and every turn lowers the heading term,
+so the best sample is to stand and wait. When the other body waits too (a person wedged between
+the robot and a box; in the simulator, an ORCA agent) nobody ever moves. A real robot's
+navigation stack has recovery behaviours for this (ROS move_base, Nav2: spin, back up); this is
+one of them, the same for every planner decision downstream:
+
+  stalled  the robot's odometry travelled less than `stall_distance_m` in the last `stall_s`
+           seconds, short of the goal;
+  escape   DWA plans toward a temporary goal `escape_goal_m` away in the most open direction
+           (of 36, the one whose straight segment keeps the most clearance from remembered
+           points and tracks) instead of the real goal, until the robot has travelled
+           `escape_distance_m` or `escape_timeout_s` has passed; then the real goal again, and a
+           fresh stall timer.
+
+Every command still goes through DWA's admissibility and the shield; the escape only moves the
+goal. The goal-reached check always uses the real goal.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from runtime.config.schema import setting
+from runtime.perception.world_model import WorldState
+from runtime.types import Odometry
+
+log = logging.getLogger("safemove.planner")
+
+
+@dataclass(frozen=True)
+class RecoveryConfig:
+    stall_s: float = setting(
+        8.0, "the robot counts as stalled after travelling less than stall_distance_m for this"
+        " long (0 = no recovery)", "s", min=0.0, max=600.0)
+    stall_distance_m: float = setting(0.05, "travel that resets the stall timer", "m",
+                                      min=0.001, max=1.0)
+    escape_goal_m: float = setting(
+        1.0, "the escape's temporary goal lies this far from the robot, in the most open"
+        " direction", "m", min=0.1, max=5.0)
+    escape_distance_m: float = setting(0.4, "the escape ends after this much travel", "m",
+                                       min=0.01, max=5.0)
+    escape_timeout_s: float = setting(8.0, "the escape ends after this long", "s", min=0.1,
+                                      max=60.0)
+
+
+@dataclass(frozen=True)
+class _Escape:
+    start_t: float
+    start_distance: float
+    goal: np.ndarray  # (2,) odom
+
+
+class StallRecovery:
+    """Tracks travel over time; `planning_goal` gives the goal DWA should plan for now."""
+
+    def __init__(self, cfg: RecoveryConfig) -> None:
+        self._cfg = cfg
+        self._anchor: tuple[float, float] | None = None  # (time, odometry distance)
+        self._escape: _Escape | None = None
+        self.escapes = 0
+
+    def planning_goal(self, now: float, odom: Odometry, world: WorldState,
+                      goal: np.ndarray) -> np.ndarray:
+        """The real goal, or an escape goal while the robot recovers from a stall."""
+        cfg = self._cfg
+        if cfg.stall_s <= 0.0:
+            return goal
+        if self._escape is not None:
+            e = self._escape
+            if (odom.distance - e.start_distance < cfg.escape_distance_m
+                    and now - e.start_t < cfg.escape_timeout_s):
+                return e.goal
+            self._escape = None
+            self._anchor = (now, odom.distance)
+            return goal
+        if self._anchor is None or odom.distance - self._anchor[1] >= cfg.stall_distance_m:
+            self._anchor = (now, odom.distance)
+            return goal
+        if now - self._anchor[0] < cfg.stall_s:
+            return goal
+        here = np.array([odom.x, odom.y])
+        centres, radii = obstacles_odom(odom, world)
+        heading = open_heading(here, centres, radii, cfg.escape_goal_m)
+        if heading is None:  # nothing near to step away from: keep waiting for the goal's way
+            self._anchor = (now, odom.distance)
+            return goal
+        away = np.array([np.cos(heading), np.sin(heading)])
+        self._escape = _Escape(now, odom.distance, here + cfg.escape_goal_m * away)
+        self.escapes += 1
+        log.info("stalled %.1f s (%.3f m travelled): escaping toward (%.2f, %.2f) (odom), the"
+                 " most open way", now - self._anchor[0], odom.distance - self._anchor[1],
+                 *self._escape.goal)
+        return self._escape.goal
+
+
+def obstacles_odom(odom: Odometry, world: WorldState) -> tuple[np.ndarray, np.ndarray]:
+    """Remembered points and confirmed tracks in the odom frame: centres (K, 2), radii (K,)
+    (0 for points)."""
+    c, s = np.cos(odom.theta), np.sin(odom.theta)
+    pts = np.asarray(world.points_base, dtype=float).reshape(-1, 2)
+    centres = [np.stack([odom.x + c * pts[:, 0] - s * pts[:, 1],
+                         odom.y + s * pts[:, 0] + c * pts[:, 1]], axis=1)]
+    radii = [np.zeros(len(pts))]
+    confirmed = [t for t in world.tracks if t.confirmed]
+    if confirmed:
+        centres.append(np.array([t.position for t in confirmed], dtype=float))
+        radii.append(np.array([t.radius for t in confirmed], dtype=float))
+    return np.concatenate(centres), np.concatenate(radii)
+
+
+def open_heading(here: np.ndarray, centres: np.ndarray, radii: np.ndarray, length: float,
+                 headings: int = 36, step_m: float = 0.1) -> float | None:
+    """The heading (odom, rad) whose straight segment of `length` from `here` keeps the most
+    clearance from the obstacles (smallest gap at samples every `step_m`); None when no
+    obstacle is within `length` + 0.5 m (nothing to step away from). Away from the nearest
+    obstacle alone can lead into a second one (a robot between two people)."""
+    if not len(radii):
+        return None
+    gaps_here = np.hypot(*(centres - here).T) - radii
+    near = gaps_here < length + 0.5
+    if not near.any():
+        return None
+    centres, radii = centres[near], radii[near]
+    angles = np.arange(headings) * (2.0 * np.pi / headings)
+    dirs = np.stack([np.cos(angles), np.sin(angles)], axis=1)  # (H, 2)
+    dists = np.arange(1, round(length / step_m) + 1) * step_m  # (S,)
+    samples = here + dirs[:, None, :] * dists[None, :, None]  # (H, S, 2)
+    gaps = (np.hypot(samples[:, :, None, 0] - centres[None, None, :, 0],
+                     samples[:, :, None, 1] - centres[None, None, :, 1]) - radii)  # (H, S, K)
+    return float(angles[int(np.argmax(gaps.min(axis=(1, 2))))])

@@ -1,0 +1,1 @@
+"""The observation contract (ObsSpec) and the ONNX actor."""

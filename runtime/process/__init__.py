@@ -1,0 +1,1 @@
+"""The process around the pipeline: the control loop, its timing, systemd notification."""

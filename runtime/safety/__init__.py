@@ -1,0 +1,1 @@
+"""The safety shield and the limits stage, applied last."""
