@@ -196,8 +196,9 @@ def bench_planner(worlds: int = 20, calls: int = 10_000, p99_calls: int = 500,
 
     from runtime.planning.corridor import CorridorConfig, safe_corridor
     from runtime.planning.dwa import DWAConfig, plan, plan_coarse
+    from runtime.safety.certificate import ShieldConfig, ShieldWorld
     from runtime.safety.limits import LimitsConfig
-    from runtime.safety.shield import ShieldConfig, ShieldWorld, shield
+    from runtime.safety.shield import shield
     from sim_stub.dwa_reference import plan_reference, random_world
 
     lim, cfg, ccfg, scfg = LimitsConfig(), DWAConfig(), CorridorConfig(), ShieldConfig()

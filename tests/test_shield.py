@@ -11,8 +11,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from runtime.config.settings import LimitsConfig
+from runtime.safety.certificate import ShieldConfig, ShieldWorld, certify
 from runtime.safety.limits import apply_limits
-from runtime.safety.shield import ShieldConfig, ShieldWorld, certify, shield
+from runtime.safety.shield import shield
 from runtime.types import Twist
 
 LIM = LimitsConfig()

@@ -8,13 +8,8 @@ import numpy as np
 import pytest
 from scipy.optimize import linear_sum_assignment
 
-from runtime.perception.tracking import (
-    Clusters,
-    Tracker,
-    TrackerConfig,
-    cluster_points,
-    cv_matrices,
-)
+from runtime.perception.clustering import Clusters, cluster_points
+from runtime.perception.tracking import Tracker, TrackerConfig, cv_matrices
 from runtime.planning.planning_step import predict_tracks_base
 from sim_stub.orca import Circle, Polygon
 from sim_stub.scenario import load_scenario
@@ -361,7 +356,7 @@ def test_cv_matrices_shape():
 def test_single_linkage_cut_matches_scipy_fcluster():
     from scipy.cluster.hierarchy import fcluster, linkage
 
-    from runtime.perception.tracking import _cut_single_linkage
+    from runtime.perception.clustering import _cut_single_linkage
 
     rng = np.random.default_rng(7)
     for _ in range(50):

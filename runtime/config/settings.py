@@ -34,8 +34,8 @@ from runtime.perception.tracking import TrackerConfig
 from runtime.planning.dwa import DWAConfig
 from runtime.planning.stall_recovery import RecoveryConfig
 from runtime.policy.actor import PolicyConfig
+from runtime.safety.certificate import ShieldConfig
 from runtime.safety.limits import LimitsConfig
-from runtime.safety.shield import ShieldConfig
 
 __all__ = [
     "CALIBRATION_TITLE", "Calibration", "CameraMount", "Config", "LimitsConfig", "LoadedConfig",

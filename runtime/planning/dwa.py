@@ -67,6 +67,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from runtime.budget import TimeBudget
 from runtime.config.schema import derived, setting
 from runtime.geometry import wrap_angles
 from runtime.safety.limits import LimitsConfig
@@ -472,31 +473,6 @@ def interleaved_blocks(n: int, block: int) -> list[np.ndarray]:
     return [np.arange(b, n, nb) for b in range(nb)]
 
 
-class _Clock:
-    """Deadline bookkeeping: a step may start only if the slowest step of its kind so far would
-    still end by the deadline. Without a clock every step may start."""
-
-    def __init__(self, deadline: float, now: Callable[[], float] | None):
-        self.deadline, self.now = deadline, now
-        self.last = now() if now is not None else 0.0
-        self.cut = False
-
-    def allows(self, estimate: float) -> bool:
-        if self.now is None:
-            return True
-        if self.now() + estimate > self.deadline:
-            self.cut = True
-        return not self.cut
-
-    def lap(self) -> float:
-        """Seconds since the previous lap (0 without a clock)."""
-        if self.now is None:
-            return 0.0
-        t = self.now()
-        dt, self.last = t - self.last, t
-        return dt
-
-
 def plan(
     cfg: DWAConfig,
     lim: LimitsConfig,
@@ -511,7 +487,7 @@ def plan(
     now: Callable[[], float] | None = None,
 ) -> DWAResult:
     """One planning call (see the module docs for frames, cost, admissibility and budget)."""
-    clock = _Clock(deadline, now)
+    clock = TimeBudget(deadline, now)
     prep = prepare(cfg, lim, v0, omega0, points)
     steps = prep.steps
     if obs_pos is None:

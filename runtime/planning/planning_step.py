@@ -23,8 +23,9 @@ from runtime.geometry import into_frame
 from runtime.perception.tracking import Track
 from runtime.perception.world_model import WorldState
 from runtime.planning.dwa import DWAConfig, DWAResult, plan
+from runtime.safety.certificate import ShieldConfig, ShieldWorld
 from runtime.safety.limits import LimitsConfig
-from runtime.safety.shield import ShieldConfig, ShieldWorld, shield
+from runtime.safety.shield import shield
 from runtime.types import STILL_M_S, Odometry, Twist
 
 log = logging.getLogger("safemove.planner")
