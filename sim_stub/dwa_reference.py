@@ -16,7 +16,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from runtime.planning.dwa import DWAConfig, braking_sample, grid_axes, prepare, term_scales
+from runtime.planning.dwa import DWAConfig
+from runtime.planning.dwa.cost import term_scales
+from runtime.planning.dwa.window import braking_sample, grid_axes, prepare
 from runtime.safety.limits import LimitsConfig
 
 

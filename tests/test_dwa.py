@@ -11,7 +11,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from runtime.config.settings import LimitsConfig
-from runtime.planning.dwa import DWAConfig, plan, plan_coarse, prepare, rollout
+from runtime.planning.dwa import DWAConfig, plan, plan_coarse
+from runtime.planning.dwa.window import prepare, rollout
 from sim_stub.dwa_reference import plan_reference, random_world
 
 LIM = LimitsConfig()
