@@ -292,10 +292,8 @@ def _add_output_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dry-run", action="store_true", help="print the result, write nothing")
 
 
-def add_calibrate_parser(sub: Any) -> None:
-    """Register `calibrate` and its actions on the `safemove` subparsers."""
-    p = sub.add_parser("calibrate", help="measure this robot: camera extrinsics, wheel"
-                       " odometry; check the calibration")
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """`safemove calibrate` and its actions."""
     csub = p.add_subparsers(dest="calibrate_command", required=True, metavar="WHAT")
 
     cp = csub.add_parser(

@@ -383,7 +383,7 @@ def test_the_real_process_answers_bad_files_with_one_line(tmp_path, observations
                observations["drl"]], "/dev/full: exists and is not a regular file")]
     for args, says in cases:
         proc = subprocess.run([sys.executable, "-m", "runtime.cli.main", "export", *args, "--spec",
-                               "drl"], capture_output=True, text=True, timeout=300, check=False)
+                               "drl"], capture_output=True, text=True, timeout=120, check=False)
         lines = proc.stderr.strip().splitlines()
         assert proc.returncode == 2 and len(lines) == 1, proc.stderr
         assert lines[0].startswith(f"safemove: error: {says}"), lines

@@ -1,0 +1,313 @@
+"""The commands of the tools around the runtime: the simulator (`sim`, `demo`, `record`,
+`base-emulator`), evaluation, soak runs, benchmarks, training and export (whose parity check
+uses simulated observations). `safemove` imports this module only to run one of them."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from runtime.cli.args import add_config_args, finite_float, int_at_least
+from runtime.cli.output import finish, print_figures, print_json
+from runtime.config.settings import load_config
+from runtime.errors import UserError
+
+
+def add_demo(p: argparse.ArgumentParser) -> None:
+    add_config_args(p)
+    p.add_argument("--scenario", default="paper_a",
+                   help="scenario to drive in (default paper_a)")
+    p.add_argument("--seed", type=int, default=4, help="episode seed (default 4)")
+    p.add_argument("--crowd", choices=("scenario", "reactive", "oblivious"), default="reactive",
+                   help="whether the people see the robot (default reactive)")
+    p.set_defaults(func=demo)
+
+
+def demo(args: argparse.Namespace) -> int:
+    """The main job: the runtime drives the simulated robot (world, depth, base) to the
+    scenario's goal with the DWA planner, every command through the shield. No trained policy
+    ships yet; `run --planner safemove --model` runs one."""
+    import time
+
+    from runtime.cli.app import run_job
+    from runtime.jobs.dwa import DWAJob
+    from sim_stub.emulator_process import EmulatorProcess
+    from sim_stub.scenario import load_scenario
+    from sim_stub.world import goal_in_odom
+
+    load_scenario(args.scenario)  # a bad name or file fails here with its one line, not in the sim
+    sim_args = [args.scenario, "--seed", str(args.seed), "--crowd", args.crowd]
+    with EmulatorProcess(sim_args, module="sim_stub.sim_server") as sim:
+        event = next(e for e in sim.history if e.get("event") == "scenario")
+        goal = goal_in_odom(tuple(event["start"]), event["goal"])
+        loaded = load_config(args.config, [
+            *args.overrides, f"base.port={sim.link}", "depth.source=sim",
+            f"depth.sim_socket={sim.depth_socket}",
+        ])
+        job = DWAJob(goal, loaded.config, time.monotonic)
+        report, link_stats = run_job(loaded, job)
+        world = sim.request("world", "world")
+        truth = sim.truth()
+    o = report.odometry
+    print(
+        f"DWA planner in scenario {args.scenario} (seed {args.seed}, {args.crowd} crowd) to the"
+        f" goal {goal[0]:+.2f}, {goal[1]:+.2f} m (odom): reached={job.reached}; world says:"
+        f" {world['status']}; odometry ({o.x:+.3f}, {o.y:+.3f}) m vs base truth"
+        f" ({truth['x']:+.3f}, {truth['y']:+.3f}) m; {report.cycles} cycles,"
+        f" {report.misses} missed deadlines, shield interventions"
+        f" {job.summary()['shield_interventions']}",
+        file=sys.stderr,
+    )
+    return finish({**report.as_dict(), "job": job.summary(), "link": link_stats, "truth": truth,
+                    "world": {k: world[k] for k in ("status", "robot_pose", "min_separation")}},
+                   report.exit_code)
+
+
+def add_soak(p: argparse.ArgumentParser) -> None:
+    p.add_argument("scenario", help="shipped scenario name or scenario file")
+    p.add_argument("--minutes", type=finite_float, default=10.0, help="real-time minutes RUNNING")
+    p.add_argument("--planner", choices=("dwa", "safemove"), default="dwa")
+    p.add_argument("--model", type=Path, help="the actor for --planner safemove")
+    p.add_argument("--seed", type=int, default=3)
+    p.add_argument("--crowd", choices=("scenario", "reactive", "oblivious"), default="scenario")
+    p.add_argument("--fps", type=finite_float, default=15.0, help="depth frames per second")
+    p.add_argument("--goal-world", nargs=2, type=finite_float, metavar=("X", "Y"),
+                   help="goal in the world frame (default: the scenario's); inside an obstacle"
+                        " it is unreachable and the robot keeps manoeuvring")
+    p.add_argument("--rss-every", type=finite_float, default=10.0, help="seconds between RSS samples")
+    p.add_argument("--warmup-s", type=finite_float, default=120.0,
+                   help="RSS samples before this are left out of the slope")
+    p.add_argument("--log", help="keep the runtime's stderr in this file")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="config override for the runtime (repeatable)")
+    p.set_defaults(func=soak_run)
+
+
+def soak_run(args: argparse.Namespace) -> int:
+    from sim_stub.soak import soak
+
+    print_json(soak(args))
+    return 0
+
+
+def _bench_parser(bsub: Any, name: str, help_text: str, func: Callable[[argparse.Namespace], int]
+                  ) -> argparse.ArgumentParser:
+    """A `bench` subcommand: every benchmark prints figures and ends with one JSON line."""
+    bp = bsub.add_parser(name, help=help_text)
+    bp.add_argument("--json", action="store_true", help="print only the JSON line")
+    bp.set_defaults(func=func)
+    return bp
+
+
+def add_bench(p: argparse.ArgumentParser) -> None:
+    bsub = p.add_subparsers(dest="bench_command", required=True, metavar="WHAT")
+    bp = _bench_parser(bsub, "loop", "the drive loop against the emulated base", bench_loop_run)
+    add_config_args(bp)
+    bp.add_argument("--cycles", type=int_at_least(1), default=400,
+                    help="control cycles to run (default 400)")
+
+    bp = _bench_parser(bsub, "sim", "depth rendering, world stepping and playback speed",
+                       bench_sim_run)
+    bp.add_argument("--frames", type=int_at_least(1), default=60,
+                    help="frames to render (default 60)")
+    bp.add_argument("--steps", type=int_at_least(1), default=500,
+                    help="world steps (default 500)")
+
+    bp = _bench_parser(bsub, "perception", "world-model stages per frame at 848x480",
+                       bench_perception_run)
+    bp.add_argument("--frames", type=int_at_least(2), default=100,
+                    help="frames to process (default 100; the first is not timed)")
+
+    bp = _bench_parser(bsub, "planner", "DWA: vectorised vs per-sample reference, p99, budget",
+                       bench_planner_run)
+    bp.add_argument("--worlds", type=int_at_least(1), default=20,
+                    help="random worlds compared (default 20)")
+    bp.add_argument("--calls", type=int_at_least(1), default=10000,
+                    help="calls for the budget overshoot (default 10000)")
+
+    bp = _bench_parser(bsub, "policy", "the actor: onnxruntime vs torch eager, batch-1 latency",
+                       bench_policy_run)
+    bp.add_argument("--runs", type=int_at_least(100), default=5000,
+                    help="timed inferences per engine and actor (default 5000)")
+    bp = _bench_parser(bsub, "startup", "time from process start to READY=1 and RSS at READY,"
+                       " against `safemove sim`", bench_startup_run)
+    bp.add_argument("--runs", type=int_at_least(1), default=5, help="starts (default 5)")
+    bp.add_argument("--planner", choices=("hold", "dwa", "safemove"), default="safemove")
+    bp.add_argument("--model", type=Path, metavar="FILE.onnx", help="the actor for safemove")
+
+
+def bench_loop_run(args: argparse.Namespace) -> int:
+    from sim_stub.bench import bench_loop
+
+    return print_figures(bench_loop(args.cycles, args.config, args.overrides), args.json)
+
+
+def bench_sim_run(args: argparse.Namespace) -> int:
+    from sim_stub.bench import bench_sim
+
+    return print_figures(bench_sim(args.frames, args.steps), args.json)
+
+
+def bench_perception_run(args: argparse.Namespace) -> int:
+    from sim_stub.bench import bench_perception
+
+    return print_figures(bench_perception(args.frames), args.json)
+
+
+def bench_planner_run(args: argparse.Namespace) -> int:
+    from sim_stub.bench import bench_planner
+
+    return print_figures({"bench": "planner", **bench_planner(worlds=args.worlds, calls=args.calls)},
+                        args.json)
+
+
+def bench_policy_run(args: argparse.Namespace) -> int:
+    from sim_stub.bench_policy import bench_policy
+
+    return print_figures(bench_policy(args.runs), args.json)
+
+
+def bench_startup_run(args: argparse.Namespace) -> int:
+    from sim_stub.startup_bench import bench_startup
+
+    return print_figures(bench_startup(args.runs, args.planner, args.model), args.json)
+
+
+def add_export(p: argparse.ArgumentParser) -> None:
+    from export.cli import add_arguments as add_export_arguments
+
+    add_export_arguments(p)
+    p.add_argument("--json", action="store_true", help="print only the JSON line")
+    p.set_defaults(func=export_run)
+
+
+def export_run(args: argparse.Namespace) -> int:
+    from export.cli import run_export
+    from sim_stub.recorded_observations import simulated_observations
+
+    return print_figures(run_export(args, simulated_observations), args.json)
+
+
+def add_train(p: argparse.ArgumentParser) -> None:
+    from sim_stub.train.cli import add_arguments as add_train_arguments
+
+    add_train_arguments(p)
+    p.set_defaults(func=train_run)
+
+
+def train_run(args: argparse.Namespace) -> int:
+    from sim_stub.train.cli import run_train
+
+    return print_figures(run_train(args), False)
+
+
+def add_eval(p: argparse.ArgumentParser) -> None:
+    add_config_args(p)
+    p.add_argument("--planner", choices=("dwa", "safemove"), default="dwa",
+                   help="dwa: the DWA baseline; safemove: the TD3 actor --model (both through"
+                        " the shield)")
+    p.add_argument("--model", type=Path, metavar="FILE.onnx", help="the actor for safemove")
+    p.add_argument("--scenarios", nargs="+", default=["paper_a", "paper_b", "paper_c", "paper_d"],
+                   metavar="NAME", help="shipped scenario names or YAML files (default: the"
+                                        " paper's a-d)")
+    p.add_argument("--episodes", type=int_at_least(1), default=20,
+                   help="episodes per scenario (default 20)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the first episode (default 0)")
+    p.add_argument("--jobs", type=int_at_least(1), default=1,
+                   help="worker processes (default 1)")
+    p.add_argument("--fps", type=finite_float, default=15.0,
+                   help="depth frames per second (default 15)")
+    p.add_argument("--no-noise", dest="noise", action="store_false",
+                   help="render depth without the D435 noise model")
+    p.add_argument("--crowd", choices=("scenario", "reactive", "oblivious"), default="scenario",
+                   help="whether the agents see and avoid the robot (default: as the scenario"
+                        " says; the paper scenarios ship oblivious)")
+    p.add_argument("--json", action="store_true", help="print only the JSON result")
+    p.set_defaults(func=eval_run)
+
+
+def eval_run(args: argparse.Namespace) -> int:
+    """Seeded episodes per scenario, lock-stepped through the runtime's pipeline code."""
+    from sim_stub.evaluate import EvalSettings, evaluate, table
+
+    if args.planner == "safemove" and args.model is None:
+        raise UserError("eval --planner safemove: give --model FILE.onnx")
+    if not 0 < args.fps <= 90:
+        raise UserError(f"eval: --fps must be in (0, 90], got {args.fps}")
+    settings = EvalSettings(args.planner, args.config, tuple(args.overrides), args.model,
+                            args.fps, args.noise, args.crowd)
+
+    def progress(r: Any) -> None:
+        if not args.json:
+            fault = ""
+            if r.status == "collision":
+                fault = (" (at fault)" if r.at_fault
+                         else " (moving, not at fault)" if r.moving_at_contact else "")
+                if r.contact_bearing_deg is not None:
+                    fault += f" with {r.collided_with} at {r.contact_bearing_deg:+.0f}°"
+            print(f"{r.scenario} seed {r.seed}: {r.status} at {r.time_s:.1f} s{fault},"
+                  f" {r.path_length_m:.2f} m, {r.shield_interventions} shield interventions",
+                  file=sys.stderr)
+
+    result = evaluate(args.scenarios, args.episodes, args.seed, settings, args.jobs, progress)
+    if not args.json:
+        print(table(result), file=sys.stderr)
+    print_json(result)
+    return 0
+
+
+def add_sim(p: argparse.ArgumentParser) -> None:
+    p.add_argument("sim_args", nargs=argparse.REMAINDER)
+    p.set_defaults(func=sim_run, passthrough="sim_args")
+
+
+def sim_run(args: argparse.Namespace) -> int:
+    from sim_stub.sim_server import main as sim_main
+
+    return sim_main(args.sim_args)
+
+
+def add_record(p: argparse.ArgumentParser) -> None:
+    add_config_args(p)
+    p.add_argument("scenario", help="a shipped scenario name or a scenario YAML file")
+    p.add_argument("-o", "--output", type=Path, required=True, help="output file (.db3)")
+    p.add_argument("--frames", type=int_at_least(1), default=90,
+                   help="frames to record (default 90)")
+    p.add_argument("--fps", type=finite_float, default=30.0, help="frame rate (default 30)")
+    p.add_argument("--twist", nargs=2, type=finite_float, metavar=("V", "OMEGA"), default=(0.2, 0.0),
+                   help="the robot's body velocity while recording (default 0.2 0)")
+    p.add_argument("--seed", type=int, default=None, help="episode seed (default: the scenario's)")
+    p.add_argument("--noise", action="store_true", help="D435-like noise and edge dropout")
+    p.set_defaults(func=record_run)
+
+
+def record_run(args: argparse.Namespace) -> int:
+    from runtime.types import Twist
+    from sim_stub.recording import record, simulated_frames
+    from sim_stub.scenario import load_scenario
+
+    if args.frames < 1 or not 0 < args.fps <= 90:
+        raise UserError("record: --frames must be ≥ 1 and --fps in (0, 90]")
+    loaded = load_config(args.config, args.overrides)
+    scenario = load_scenario(args.scenario)
+    frames = simulated_frames(scenario, args.frames, args.fps, Twist(*args.twist),
+                              loaded.calibration.camera, loaded.config.limits, args.seed,
+                              args.noise)
+    written = record(args.output, frames, args.fps)
+    print_json({"recording": str(args.output), "frames": written, "fps": args.fps,
+                 "scenario": scenario.name})
+    return 0
+
+
+def add_base_emulator(p: argparse.ArgumentParser) -> None:
+    p.add_argument("emulator_args", nargs=argparse.REMAINDER)
+    p.set_defaults(func=base_emulator_run, passthrough="emulator_args")
+
+
+def base_emulator_run(args: argparse.Namespace) -> int:
+    from sim_stub.base_emulator import main as emulator_main
+
+    return emulator_main(args.emulator_args)
