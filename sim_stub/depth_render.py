@@ -9,6 +9,15 @@ Output is uint16 Z16 in `intrinsics.depth_unit_m`: Z along the optical axis (not
 0 where nothing is hit within `max_range_m` or closer than `min_range_m`. Optional noise:
 sigma_z = k * z^2 (seeded) and random dropout next to large depth discontinuities.
 
+Render what is read: with `decimation` d the renderer casts only the rays of every d-th pixel
+in both directions, the grid the world model reads at `perception.decimation` d, and returns
+them as a (ceil(H/d), ceil(W/d)) image whose intrinsics are the full ones divided by d. Its
+pixel (i, j) is the full image's pixel (d·i, d·j), bit for bit without noise (the same rays,
+elementwise arithmetic only), and the world model deprojects it along the same rays (d is 1, 2
+or 4: dividing the intrinsics by a power of two is exact). With noise, each kept pixel gets the
+same depth noise; edge dropout looks at the neighbouring rendered pixels, d pixels apart, with
+the same jump threshold and probability.
+
 Speed: ray directions are precomputed once (optical frame, z component 1, so the ray parameter
 is Z itself); per frame one 3x3 rotation of all rays, then per object only the pixel rectangle
 its bounding box projects to is intersected (closed form, numpy, float32). No loop over pixels.
@@ -65,6 +74,17 @@ class Scene:
     floor: bool = True
 
 
+DECIMATIONS = (1, 2, 4)  # the perception decimations (powers of two: exact intrinsics)
+
+
+def decimated(k: DepthIntrinsics, d: int) -> DepthIntrinsics:
+    """Intrinsics of every d-th pixel of a k image: pixel (i, j) is k's pixel (d·i, d·j)."""
+    if d == 1:
+        return k
+    return DepthIntrinsics(-(-k.width // d), -(-k.height // d), k.fx / d, k.fy / d, k.cx / d,
+                           k.cy / d, k.depth_unit_m)
+
+
 def camera_pose(robot_pose: tuple[float, float, float], mount: CameraMount,
                 base_z: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """(R_world_optical 3x3, camera origin in world) for robot pose (x, y, theta)."""
@@ -90,8 +110,13 @@ class DepthRenderer:
         edge_dropout_p: float = 0.5,
         edge_jump_m: float = 0.25,
         seed: int = 0,
+        decimation: int = 1,
     ) -> None:
-        self.intrinsics = intrinsics
+        if decimation not in DECIMATIONS:
+            raise ValueError(f"decimation must be one of {DECIMATIONS}, got {decimation}")
+        self.full_intrinsics = intrinsics
+        self.decimation = d = decimation
+        self.intrinsics = decimated(intrinsics, d)
         self.mount = mount if mount is not None else CameraMount()
         self.base_z = base_z
         self.min_range_m = min_range_m
@@ -100,9 +125,9 @@ class DepthRenderer:
         self.edge_dropout_p = edge_dropout_p
         self.edge_jump_m = edge_jump_m
         self.rng = np.random.default_rng(seed)
-        h, w = intrinsics.height, intrinsics.width
-        u = (np.arange(w, dtype=np.float64) - intrinsics.cx) / intrinsics.fx
-        v = (np.arange(h, dtype=np.float64) - intrinsics.cy) / intrinsics.fy
+        h, w = self.intrinsics.height, self.intrinsics.width
+        u = (np.arange(0, intrinsics.width, d, dtype=np.float64) - intrinsics.cx) / intrinsics.fx
+        v = (np.arange(0, intrinsics.height, d, dtype=np.float64) - intrinsics.cy) / intrinsics.fy
         rays = np.empty((3, h, w), dtype=F32)  # optical frame, z = 1: ray parameter == Z
         rays[0] = u[None, :]
         rays[1] = v[:, None]
@@ -117,7 +142,12 @@ class DepthRenderer:
         """Noise-free Z in metres (float32, HxW), inf where nothing is hit. Reused buffer."""
         r, o = camera_pose(robot_pose, self.mount, self.base_z)
         h, w = self.intrinsics.height, self.intrinsics.width
-        np.matmul(r.astype(F32), self._rays, out=self._d)
+        r32 = r.astype(F32)
+        for i in range(3):  # elementwise, not a BLAS product: a pixel's ray must not depend on
+            # how many others are cast with it (decimated == full, bit for bit)
+            np.multiply(r32[i, 0], self._rays[0], out=self._d[i])
+            self._d[i] += r32[i, 1] * self._rays[1]
+            self._d[i] += r32[i, 2] * self._rays[2]
         d = self._d.reshape(3, h, w)
         z = self._z
         z.fill(np.inf)
@@ -131,7 +161,8 @@ class DepthRenderer:
         return z
 
     def _rect(self, corners: np.ndarray, r: np.ndarray, o: np.ndarray):
-        """Pixel rectangle (v0, v1, u0, u1) covering world corners, or None if not visible."""
+        """Rendered-pixel rectangle (v0, v1, u0, u1) covering world corners, or None if not
+        visible: the full image's pixel rectangle, then the rendered pixels inside it."""
         p = (corners - o) @ r  # optical coordinates (rows)
         zs = p[:, 2]
         if np.all(zs <= 1e-3) or zs.min() > self.max_range_m:
@@ -139,11 +170,12 @@ class DepthRenderer:
         h, w = self.intrinsics.height, self.intrinsics.width
         if np.any(zs <= 1e-3):
             return 0, h, 0, w
-        k = self.intrinsics
+        k, d = self.full_intrinsics, self.decimation
         us = k.fx * p[:, 0] / zs + k.cx
         vs = k.fy * p[:, 1] / zs + k.cy
-        u0, u1 = max(math.floor(us.min()) - 1, 0), min(math.ceil(us.max()) + 2, w)
-        v0, v1 = max(math.floor(vs.min()) - 1, 0), min(math.ceil(vs.max()) + 2, h)
+        u0, u1 = max(math.floor(us.min()) - 1, 0), min(math.ceil(us.max()) + 2, k.width)
+        v0, v1 = max(math.floor(vs.min()) - 1, 0), min(math.ceil(vs.max()) + 2, k.height)
+        u0, u1, v0, v1 = -(-u0 // d), -(-u1 // d), -(-v0 // d), -(-v1 // d)  # ceil: d·j in [lo, hi)
         if u0 >= u1 or v0 >= v1:
             return None
         return v0, v1, u0, u1

@@ -28,7 +28,7 @@ class EmulatorProcess:
     def __init__(
         self,
         args: list[str] | None = None,
-        startup_timeout_s: float = 10.0,
+        startup_timeout_s: float = 30.0,  # a loaded machine may take this long to import and bind
         module: str = "sim_stub.base_emulator",
     ) -> None:
         self._tmp = tempfile.TemporaryDirectory(prefix="safemove-emu-")

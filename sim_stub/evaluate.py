@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -83,7 +83,7 @@ def run_episode(scenario_name: str, seed: int, settings: EvalSettings) -> Episod
     episode = LockstepEpisode(scenario_name, seed, loaded.config, loaded.calibration,
                               settings.fps, settings.noise, settings.crowd)
     job = make_job(settings, episode.goal_odom, loaded)
-    pipeline = Pipeline(loaded.config, loaded.calibration, job)
+    pipeline = Pipeline(episode.config, loaded.calibration, job)
     job_s: list[float] = []
     while (inp := episode.cycle()) is not None:
         cycle = pipeline.step(inp)
@@ -138,7 +138,8 @@ def evaluate(scenarios: list[str], episodes: int, seed: int, settings: EvalSetti
              jobs: int = 1, progress: Callable[[EpisodeResult], None] | None = None
              ) -> dict[str, Any]:
     """`episodes` seeded episodes (seeds seed, seed+1, …) of each scenario; `jobs` worker
-    processes. Returns the per-scenario summaries and every episode."""
+    processes. `progress` gets each episode as it ends (with workers: in the order they end).
+    Returns the per-scenario summaries and every episode, in task order."""
     for name in scenarios:
         load_scenario(name)  # a bad name or file fails here, once, with its message
     load_config(settings.config_path, list(settings.overrides))
@@ -151,10 +152,11 @@ def evaluate(scenarios: list[str], episodes: int, seed: int, settings: EvalSetti
                 progress(results[-1])
     else:
         with ProcessPoolExecutor(max_workers=jobs) as pool:
-            for r in pool.map(_run_one, tasks):
-                results.append(r)
+            futures = [pool.submit(_run_one, task) for task in tasks]
+            for done in as_completed(futures):
                 if progress is not None:
-                    progress(r)
+                    progress(done.result())
+            results = [f.result() for f in futures]
     return {
         "planner": settings.planner,
         "fps": settings.fps,

@@ -2,17 +2,23 @@
 
 What stands in for the robot's devices, nothing more: the Spark base model (`SparkBaseSim`)
 moves the robot and streams real feedback frames, which go through the real codec
-(`FrameParser`, `FeedbackConverter`) into wheel increments; the renderer produces D435 frames;
+(`FrameParser`, `FeedbackConverter`) into wheel increments; the renderer produces D435 frames,
+only the pixels the world model reads (`perception.decimation` moves into the renderer, and the
+pipeline runs with `config`, whose perception reads every pixel of them: the same rays);
 the command a cycle of `Pipeline.step` passed reaches the base as a wheel-speed frame, as
 `SparkBaseLink` would send it. The evaluation (`safemove eval`) and the training environment
 (`sim_stub/train/env.py`) run the runtime's pipeline on what this delivers, so a policy is trained on
 what it is scored on and what runs on the robot. Events fall on a common clock: base ticks every
-20 ms, depth frames at `fps`, control cycles at `loop.control_hz`. No wall clock is read.
+20 ms, depth frames at `fps`, control cycles at `loop.control_hz`. The episode runs on that
+clock only; `sim_s` adds up the wall time spent standing in for the world (render, crowd, base)
+for the benchmarks, and changes nothing.
 """
 
 from __future__ import annotations
 
 import math
+import time
+from dataclasses import replace
 
 from drivers.depth_source import D435_848x480
 from drivers.spark.feedback import FeedbackConverter
@@ -25,7 +31,7 @@ from drivers.spark.protocol import (
 )
 from runtime.config.settings import Calibration, Config
 from runtime.pipeline import CycleInput
-from runtime.types import DepthFrame, DepthIntrinsics, Twist, WheelIncrement
+from runtime.types import DepthFrame, Twist, WheelIncrement
 from sim_stub.base_sim import BasePhysics, SparkBaseSim
 from sim_stub.depth_render import DepthRenderer
 from sim_stub.scenario import load_scenario, with_crowd
@@ -38,21 +44,22 @@ BASE_TICK_S = 0.02  # the Spark base's feedback period (50 Hz)
 class LockstepEpisode:
     """World, base model and renderer for one episode.
 
-    Use: `cycle()` advances to the next control cycle and returns what arrived for it (None
-    once the world has judged the episode over); `send(command)` sends the cycle's command.
-    `path_length_m` is the true path so far."""
+    Use: build the `Pipeline` with `config` (not `cfg`: see the module docs); `cycle()`
+    advances to the next control cycle and returns what arrived for it (None once the world
+    has judged the episode over); `send(command)` sends the cycle's command. `path_length_m` is
+    the true path so far."""
 
     def __init__(self, scenario: str, seed: int, cfg: Config, cal: Calibration, fps: float,
-                 noise: bool, crowd: str = "scenario",
-                 intrinsics: DepthIntrinsics = D435_848x480) -> None:
+                 noise: bool, crowd: str = "scenario") -> None:
         self.world = World(with_crowd(load_scenario(scenario), crowd), seed=seed,
                            limits=cfg.limits)
         w = self.world.robot
         self._start = (w.x, w.y, w.theta)
         self.goal_odom = goal_in_odom(self._start, self.world.goal)
         self._base = SparkBaseSim(BasePhysics(seed=seed), "stream", watchdog_s=0.0, t0=0.0)
-        self._renderer = DepthRenderer(intrinsics, cal.camera, base_z=BASE_LINK_HEIGHT_M,
-                                       seed=seed)
+        self._renderer = DepthRenderer(D435_848x480, cal.camera, base_z=BASE_LINK_HEIGHT_M,
+                                       seed=seed, decimation=cfg.perception.decimation)
+        self.config = replace(cfg, perception=replace(cfg.perception, decimation=1))
         self._noise = noise
         self._parser = FrameParser(BASE_TO_HOST)
         self._converter = FeedbackConverter(cal.odometry, cfg.base)
@@ -68,6 +75,7 @@ class LockstepEpisode:
         self.frames = self.cycles = 0
         self.path_length_m = 0.0
         self.looking = True  # render depth frames (a finished job stands still: no need)
+        self.sim_s = {"render": 0.0, "crowd": 0.0, "base": 0.0}  # wall seconds, cumulative
 
     @property
     def done(self) -> bool:
@@ -108,24 +116,32 @@ class LockstepEpisode:
         self._base.receive(wheel_speed_frame(left, right), self.t)
 
     def _move(self, dt: float) -> None:
+        t0 = time.perf_counter()
         self._base.step(dt)
         truth = self._base.truth()
         x, y, theta = base_to_world(self._start, truth["x"], truth["y"], truth["theta"])
         r = self.world.robot
         self.path_length_m += math.hypot(x - r.x, y - r.y)
+        t1 = time.perf_counter()
         self.world.follow_robot(dt, x, y, theta, truth["v"], truth["omega"])
+        self.sim_s["base"] += t1 - t0
+        self.sim_s["crowd"] += time.perf_counter() - t1
 
     def _read_feedback(self) -> None:
+        t0 = time.perf_counter()
         for f in self._parser.feed(self._base.feedback_frame()):
             inc = self._converter.convert(decode_feedback(f.payload), self.t)
             if self._converter.usable:  # as SparkBaseLink dates its feedback
                 self._feedback_t = self.t
             if inc is not None:
                 self._increments.append(inc)
+        self.sim_s["base"] += time.perf_counter() - t0
 
     def _render(self) -> None:
+        t0 = time.perf_counter()
         snap = self.world.snapshot()
         depth = self._renderer.render(tuple(snap.robot_pose), scene_from(self.world, snap),
                                       noise=self._noise)
         self._frames.append(DepthFrame(depth, self.t, self.frames, self._renderer.intrinsics))
         self.frames += 1
+        self.sim_s["render"] += time.perf_counter() - t0

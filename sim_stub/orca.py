@@ -295,6 +295,20 @@ def solve_velocity(
     return result
 
 
+def _bounded_change(chosen: tuple[float, float], current: np.ndarray, max_change: float,
+                    hard: Sequence[Line]) -> tuple[float, float]:
+    """`chosen`, or the velocity max_change from `current` toward it when it is farther, unless
+    that breaks a hard (static obstacle) line."""
+    dx, dy = chosen[0] - float(current[0]), chosen[1] - float(current[1])
+    n = math.hypot(dx, dy)
+    if not n > max_change:  # also when unbounded (inf, or nan at dt = 0)
+        return chosen
+    bx, by = float(current[0]) + dx * max_change / n, float(current[1]) + dy * max_change / n
+    if any(_det(ex, ey, px - bx, py - by) > _EPS for px, py, ex, ey in hard):
+        return chosen
+    return bx, by
+
+
 # --- the crowd -----------------------------------------------------------------------------------
 
 
@@ -314,6 +328,10 @@ class OrcaParams:
     # 3D fallback allows small penetrations of the velocity obstacles; in dense crowds these turn
     # into overlaps of up to ~2.5 cm without a margin and none with 2 cm (paper_c/d, 5 seeds).
     safety_margin: float = 0.0
+    # People cannot change velocity at once: a new velocity is at most max_accel·dt from the
+    # current one (inf: at once). Where that bounded velocity would break a static obstacle's
+    # hard constraint, ORCA's own answer is kept: a person stops short of a wall.
+    max_accel: float = math.inf
 
 
 @dataclass(frozen=True)
@@ -465,14 +483,24 @@ class Crowd:
                 lines.append(tuple(pair_lines[i, j].tolist()))  # type: ignore[arg-type]
             for b in np.flatnonzero(body_dist[i] < prm.neighbour_distance):
                 lines.append(tuple(body_lines[i, b].tolist()))  # type: ignore[arg-type]
-            out[i] = solve_velocity(
+            chosen = solve_velocity(
                 lines, num_hard, float(self.max_speeds[i]), (float(pref[i, 0]), float(pref[i, 1]))
             )
+            out[i] = _bounded_change(chosen, vel[i], prm.max_accel * dt, lines[:num_hard])
         return out
 
     def step(self, dt: float, obstacles: Sequence[Shape] = (), others: Sequence[Body] = ()) -> None:
         """Choose velocities by ORCA, move every agent, re-draw the goals of those that arrived."""
+        self.decide(dt, obstacles, others)
+        self.move(dt)
+
+    def decide(self, dt: float, obstacles: Sequence[Shape] = (), others: Sequence[Body] = ()
+               ) -> None:
+        """Choose the velocities the agents keep for the next dt (ORCA's step)."""
         self.velocities = self.compute_velocities(dt, obstacles, others)
+
+    def move(self, dt: float) -> None:
+        """Walk dt at the chosen velocities; re-draw the goals of the agents that arrived."""
         self.positions = self.positions + self.velocities * dt
         if self.goal_sampler is None:
             return

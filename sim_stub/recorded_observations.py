@@ -1,11 +1,9 @@
 """Recorded observations for the export's parity check: what the robot's actor will really see.
 
 Lock-stepped simulated episodes in one process, deterministic for a spec and a seed: scenario
-paper_b (12 oblivious people, 4 static obstacles), depth rendered at 424×240 (the D435's
-half-resolution mode, 4× cheaper than 848×480; with perception decimation 2 the world model
-reads the same grid as at full resolution with decimation 4) at 10 fps, run through the
-runtime's `Pipeline` with the SafeMove job of the spec: every observation the job builds is
-recorded. The robot follows DWA's best command (given as the actor's action, through the shield
+paper_b (12 oblivious people, 4 static obstacles), depth rendered at the pixels the world model
+reads (sim_stub/lockstep.py) at 10 fps, run through the runtime's `Pipeline` with the SafeMove
+job of the spec: every observation the job builds is recorded. The robot follows DWA's best command (given as the actor's action, through the shield
 and the limits); when an episode ends (goal, collision, time limit) the next seed starts.
 Random observations fill the spec's bounds uniformly; these fill it as a run does: mostly free
 scan bins, small speeds, goal far away, etc.
@@ -13,25 +11,16 @@ scan bins, small speeds, goal far away, etc.
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 
-from drivers.depth_source import D435_848x480
 from runtime.config.settings import Calibration, Config
 from runtime.jobs.safemove import SafeMoveJob
 from runtime.pipeline import Pipeline
 from runtime.policy.obs_spec import ActionSpec, ObsSpec
-from runtime.types import DepthIntrinsics
 from sim_stub.lockstep import LockstepEpisode
 
 FPS = 10.0
 SCENARIO = "paper_b"
-
-
-def _half_resolution(k: DepthIntrinsics) -> DepthIntrinsics:
-    return DepthIntrinsics(k.width // 2, k.height // 2, k.fx / 2, k.fy / 2, (k.cx + 0.5) / 2 - 0.5,
-                           (k.cy + 0.5) / 2 - 0.5, k.depth_unit_m)
 
 
 def _action_for(action: ActionSpec, v: float, omega: float) -> np.ndarray:
@@ -44,17 +33,14 @@ def recorded_observations(spec: ObsSpec, count: int, seed: int = 0,
                           config: Config | None = None) -> np.ndarray:
     """(count, spec.size) float32 observations from simulated runs (module docs)."""
     cfg = config if config is not None else Config()
-    cfg = replace(cfg, perception=replace(cfg.perception, decimation=2))
     cal = Calibration()
-    intrinsics = _half_resolution(D435_848x480)
     out = np.empty((count, spec.size), dtype=np.float32)
     n, episode_seed = 0, seed
     while n < count:
-        episode = LockstepEpisode(SCENARIO, episode_seed, cfg, cal, FPS, noise=False,
-                                  intrinsics=intrinsics)
+        episode = LockstepEpisode(SCENARIO, episode_seed, cfg, cal, FPS, noise=False)
         episode_seed += 1
         job = SafeMoveJob(episode.goal_odom, cfg, None, None, spec=spec)
-        pipeline = Pipeline(cfg, cal, job)
+        pipeline = Pipeline(episode.config, cal, job)
         while n < count and (inp := episode.cycle()) is not None:
             sensed = pipeline.begin(inp)
             action = None

@@ -74,6 +74,17 @@ class CrowdSpec:
         max=0.5,
     )
     max_neighbours: int = setting(10, "at most this many nearest agents considered", min=1)
+    decision_period_s: float = setting(
+        0.1, "agents choose a new velocity (an ORCA step) every this many seconds and walk"
+        " straight in between, as people do; 0 = at every simulation step", "s", min=0.0,
+        max=1.0)
+    comfort_distance_m: float = setting(
+        0.25, "reactive agents keep this much space to the robot beyond contact (people keep a"
+        " comfort distance from a robot); 0 = they pass as close as to each other", "m",
+        min=0.0, max=2.0)
+    max_accel_m_s2: float = setting(
+        1.5, "agents change velocity at most this fast (people cannot turn or stop at once);"
+        " 0 = unbounded", "m/s²", min=0.0, max=20.0)
     goal_min_distance_m: float = setting(
         2.0, "a re-drawn goal is at least this far from the agent (when possible)", "m", min=0.0
     )

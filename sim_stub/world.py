@@ -5,10 +5,12 @@ Everything is deterministic from the seed: one `numpy.random.Generator` draws th
 its goal (unless given), the agents' positions, goals and speeds; goal re-draws on arrival use a
 second generator spawned from the same seed.
 
-Order inside `World.step(dt, v, omega)`: the crowd chooses its velocities by ORCA from the current
-state (seeing the robot as a non-reactive neighbour when the scenario's crowd is reactive), the
-crowd moves, the robot applies the command through its acceleration limits and moves, the clock
-advances, then the episode is judged: collision, else success, else timeout. Contacts are checked
+People behave as people: they choose a new velocity every `crowd.decision_period_s` by ORCA
+(seeing the robot as a non-reactive neighbour, widened by their comfort distance, when the
+scenario's crowd is reactive), change velocity no faster than `crowd.max_accel_m_s2`, and walk
+straight in between. Order inside `World.step(dt, v, omega)`: the crowd walks dt (deciding when
+a decision falls due), the robot applies the command through its acceleration limits and moves,
+the clock advances, then the episode is judged: collision, else success, else timeout. Contacts are checked
 at step ends only (no sweeping), which at dt = 0.1 s and these speeds cannot skip a contact of
 0.47 m combined radius by more than a few centimetres of overlap.
 
@@ -129,6 +131,15 @@ def obstacle_shape(spec: BoxSpec | CylinderSpec | WallSpec) -> Shape:
     return segment_box(spec.start, spec.end, spec.thickness)
 
 
+def _bounding_box(shape: Shape) -> tuple[float, float, float, float]:
+    """x_min, y_min, x_max, y_max of a footprint."""
+    if isinstance(shape, Circle):
+        (x, y), r = shape.center, shape.radius
+        return x - r, y - r, x + r, y + r
+    lo, hi = shape.vertices.min(axis=0), shape.vertices.max(axis=0)
+    return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
+
+
 def base_to_world(start: tuple[float, float, float], x: float, y: float, theta: float
                   ) -> tuple[float, float, float]:
     """A pose from the base model's own frame (the origin at power-on) to the world, where the
@@ -171,7 +182,9 @@ class World:
         self.robot_radius = robot_radius
         self.obstacles = scenario.obstacles
         self.shapes: list[Shape] = [obstacle_shape(o) for o in scenario.obstacles]
+        self._shape_boxes = np.array([_bounding_box(s) for s in self.shapes]).reshape(-1, 4)
         self.t = 0.0
+        self._next_decision = 0.0  # the crowd's next velocity choice (s)
         self.min_separation = math.inf  # smallest robot-agent gap seen (m)
         self.contacts: list[Contact] = []  # every contact's start, also after the outcome
         self._touching: set[str] = set()
@@ -251,6 +264,7 @@ class World:
             neighbour_distance=spec.neighbour_distance_m,
             max_neighbours=spec.max_neighbours,
             safety_margin=spec.safety_margin_m,
+            max_accel=spec.max_accel_m_s2 if spec.max_accel_m_s2 > 0 else math.inf,
         )
         return Crowd(
             positions,
@@ -280,9 +294,10 @@ class World:
     # --- stepping --------------------------------------------------------------------------------
 
     def robot_body(self) -> Body:
+        """The robot as reactive people see it: its disc widened by their comfort distance."""
         r = self.robot
         vel = (r.v * math.cos(r.theta), r.v * math.sin(r.theta))
-        return Body((r.x, r.y), vel, self.robot_radius)
+        return Body((r.x, r.y), vel, self.robot_radius + self.scenario.crowd.comfort_distance_m)
 
     def step(self, dt: float, v_cmd: float, omega_cmd: float) -> Outcome:
         """Advance the world by dt with the robot's body-velocity command; returns the judgement.
@@ -291,12 +306,31 @@ class World:
         """
         if self.outcome.done:
             return self.outcome
-        others = [self.robot_body()] if self.scenario.crowd.reactive else []
-        self.crowd.step(dt, self.shapes, others)
+        self._advance_crowd(dt)
         self._move_robot(dt, v_cmd, omega_cmd)
         self.t += dt
         self.outcome = self.judge()
         return self.outcome
+
+    def _advance_crowd(self, dt: float) -> None:
+        """The crowd walks dt from self.t: people decide every `crowd.decision_period_s` (ORCA,
+        seeing the robot where it is at that moment when they are reactive) and walk straight
+        in between; a period of 0 decides at every step, over that step."""
+        period = self.scenario.crowd.decision_period_s
+        others = [self.robot_body()] if self.scenario.crowd.reactive else []
+        if period <= 0.0:
+            self.crowd.step(dt, self.shapes, others)
+            return
+        t, end = self.t, self.t + dt
+        while True:
+            if t >= self._next_decision - 1e-9:
+                self.crowd.decide(period, self.shapes, others)
+                self._next_decision += period
+            to = min(end, self._next_decision)
+            self.crowd.move(to - t)
+            t = to
+            if t >= end - 1e-9:
+                return
 
     def follow_robot(
         self, dt: float, x: float, y: float, theta: float, v: float, omega: float
@@ -307,8 +341,7 @@ class World:
         r = self.robot
         r.x, r.y, r.theta, r.v, r.omega = x, y, theta, v, omega
         if dt > 0.0:
-            others = [self.robot_body()] if self.scenario.crowd.reactive else []
-            self.crowd.step(dt, self.shapes, others)
+            self._advance_crowd(dt)
             self.t += dt
         now = self.judge()
         if not self.outcome.done:
@@ -347,8 +380,11 @@ class World:
                     towards = rel[k] / max(float(dist[k]), 1e-9)
                     new.append(judge_contact(self.t, who, self.robot, towards,
                                              self.crowd.velocities[k]))
-        for o, shape in enumerate(self.shapes):
-            if shape.distance(p[None])[0] < self.robot_radius:
+        lo, hi = self._shape_boxes[:, :2], self._shape_boxes[:, 2:]
+        reach = self.robot_radius
+        near = np.flatnonzero(np.all((p >= lo - reach) & (p <= hi + reach), axis=1))
+        for o in near:  # only shapes whose bounding box is within reach can touch
+            if self.shapes[o].distance(p[None])[0] < self.robot_radius:
                 who = f"obstacle {o}"
                 touching.append(who)
                 if who not in self._touching:

@@ -105,3 +105,67 @@ def test_edge_dropout() -> None:
     for e in edges:
         assert noisy[200, e] == 0 and noisy[200, e + 1] == 0
     assert noisy[200, 424] == clean[200, 424]
+
+
+CLUTTER = Scene(
+    [Cylinder(1.5, 0.4, 0.3, 1.7), Cylinder(3.0, -1.0, 0.25, 1.2), Cylinder(0.6, -0.5, 0.1, 0.8)],
+    [Box(2.5, 1.2, 0.6, 0.4, 0.7, 0.8), wall(-1.0, 2.0, 6.0, 2.0), wall(6.0, -3.0, 6.0, 3.0)],
+)
+POSES = [(0.0, 0.0, 0.0), (0.4, -0.2, 0.3), (1.1, 0.5, -0.9), (-0.5, 0.0, 2.8)]
+TILTED = CameraMount(translation_m=(0.1, 0.02, 0.2), rpy_deg=(0.5, 12.0, -1.0))
+
+
+@pytest.mark.parametrize("d", [2, 4])
+def test_decimated_render_is_the_full_render_subsampled(d: int) -> None:
+    """Render what is read: pixel (i, j) of the decimated image is pixel (d·i, d·j) of the full
+    one, bit for bit, and its intrinsics deproject it along the same ray."""
+    full, dec = renderer(TILTED), renderer(TILTED, decimation=d)
+    k = dec.intrinsics
+    assert (k.width, k.height) == (848 // d, 480 // d)
+    assert (k.fx * d, k.fy * d, k.cx * d, k.cy * d) == (K.fx, K.fy, K.cx, K.cy)
+    for pose in POSES:
+        want = full.render(pose, CLUTTER)[::d, ::d]
+        got = dec.render(pose, CLUTTER)
+        assert got.shape == want.shape and np.count_nonzero(want) > 1000
+        assert np.array_equal(got, want), pose
+
+
+def test_world_model_reads_the_same_points_from_a_decimated_render() -> None:
+    """The pipeline's perception at decimation 1 on the decimated render gives the points it
+    gives at decimation 4 on the full render: the simulator may render only what is read."""
+    from dataclasses import replace
+
+    from runtime.perception.depth_points import Perception, PerceptionConfig
+
+    cfg = PerceptionConfig()
+    assert cfg.decimation == 4
+    full, dec = renderer(TILTED), renderer(TILTED, decimation=4)
+    p_full = Perception(K, TILTED, cfg)
+    p_dec = Perception(dec.intrinsics, TILTED, replace(cfg, decimation=1))
+    seen = 0
+    for pose in POSES:
+        a = p_full.process(full.render(pose, CLUTTER))
+        pa, sa = a.points.copy(), a.scan.copy()
+        b = p_dec.process(dec.render(pose, CLUTTER))
+        seen += len(pa)
+        assert np.array_equal(pa, b.points) and np.array_equal(sa, b.scan), pose
+    assert seen > 1000
+
+
+def test_decimated_noise_is_the_same_model_per_pixel() -> None:
+    """Same depth noise per kept pixel: the spread of (noisy - clean) on a wall at 3 m matches."""
+    scene = Scene([], [wall(3.0, -5.0, 3.0, 5.0, height=3.0)], floor=False)
+    spreads = []
+    for d in (1, 4):
+        r = renderer(decimation=d, edge_dropout_p=0.0, seed=2)
+        clean = r.render((0.0, 0.0, 0.0), scene).astype(float)
+        noisy = np.stack([r.render((0.0, 0.0, 0.0), scene, noise=True) for _ in range(4)])
+        diff = (noisy - clean)[:, clean > 0] * 1e-3
+        spreads.append(diff.std())
+    assert spreads[0] == pytest.approx(0.001 * 9.0, rel=0.05)  # sigma = k z^2 at 3 m
+    assert spreads[1] == pytest.approx(spreads[0], rel=0.1)
+
+
+def test_decimation_outside_the_perception_choices_is_refused() -> None:
+    with pytest.raises(ValueError, match="decimation"):
+        renderer(decimation=3)

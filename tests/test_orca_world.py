@@ -17,7 +17,7 @@ import pytest
 import yaml
 
 from runtime.errors import ConfigError
-from sim_stub.orca import Crowd, solve_velocity
+from sim_stub.orca import Crowd, OrcaParams, solve_velocity
 from sim_stub.scenario import available_scenarios, load_scenario, parse_scenario
 from sim_stub.world import Contact, RobotState, World, judge_contact
 
@@ -91,23 +91,43 @@ def test_lp_matches_brute_force_on_random_programs() -> None:
             assert violation(res).max() <= grid_viol.min() + 1e-9
 
 
-def test_two_agents_head_on_reach_goals_without_overlap() -> None:
-    crowd = Crowd([[-3.0, 0.0], [3.0, 0.0]], [[3.0, 0.0], [-3.0, 0.0]], 0.3, 1.0)
+ACCELS = [math.inf, 1.5]  # velocity changes at once, or as fast as a person's
+
+
+@pytest.mark.parametrize("max_accel", ACCELS)
+def test_two_agents_head_on_reach_goals_without_overlap(max_accel: float) -> None:
+    crowd = Crowd([[-3.0, 0.0], [3.0, 0.0]], [[3.0, 0.0], [-3.0, 0.0]], 0.3, 1.0,
+                  params=OrcaParams(max_accel=max_accel))
     steps, min_gap = _run_to_goals(crowd, 200)
     assert steps is not None, "head-on agents did not both reach their goals in 20 s"
     assert min_gap >= -OVERLAP_SLACK_M
     assert steps * DT < 12.0
 
 
-def test_ring_of_20_swaps_places_without_overlap() -> None:
+@pytest.mark.parametrize("max_accel", ACCELS)
+def test_ring_of_20_swaps_places_without_overlap(max_accel: float) -> None:
     n, radius_m = 20, 8.0
     a = np.arange(n) * 2 * np.pi / n
     start = np.stack([radius_m * np.cos(a), radius_m * np.sin(a)], -1)
-    crowd = Crowd(start, -start, 0.3, 1.0)
+    crowd = Crowd(start, -start, 0.3, 1.0, params=OrcaParams(max_accel=max_accel))
     steps, min_gap = _run_to_goals(crowd, 400)
     assert steps is not None, "ring did not complete within 40 s"
     assert steps * DT <= 30.0  # measured 20.2 s
     assert min_gap >= -OVERLAP_SLACK_M  # measured +0.08 mm
+
+
+def test_velocity_changes_no_faster_than_a_person_can() -> None:
+    """From standing, head-on: each step's velocity change is at most max_accel·dt."""
+    crowd = Crowd([[-3.0, 0.1], [3.0, 0.0]], [[3.0, 0.0], [-3.0, 0.0]], 0.3, 1.0,
+                  params=OrcaParams(max_accel=1.5))
+    changes, speeds = [], []
+    for _ in range(80):
+        before = crowd.velocities.copy()
+        crowd.step(DT)
+        changes.append(np.hypot(*(crowd.velocities - before).T).max())
+        speeds.append(np.hypot(*crowd.velocities.T).max())
+    assert max(changes) <= 1.5 * DT + 1e-9
+    assert speeds[5] < 1.0 and max(speeds) > 0.9  # they get going, not at once
 
 
 @pytest.mark.parametrize("name", ["paper_d", "static_clutter", "corridor"])
@@ -309,6 +329,48 @@ def test_reactive_agent_walks_around_parked_robot() -> None:
     assert world.outcome.status == "running"
     assert world.crowd.positions[0, 0] > 2.5  # it went past
     assert world.min_separation >= -OVERLAP_SLACK_M
+
+
+def test_reactive_people_keep_their_comfort_distance_from_the_robot() -> None:
+    """Walking straight at a parked robot, a reactive person passes it with at least about the
+    comfort distance between them; with none they pass as close as to each other."""
+    gaps = {}
+    for comfort in (0.0, 0.25):
+        crowd = {"count": 1, "reactive": True, "speed_range": [0.8, 0.8],
+                 "comfort_distance_m": comfort}
+        world = World(parse_scenario(_scene(crowd=crowd), "test"))
+        world.crowd.set_agent(0, (-3.0, 0.0), (3.0, 0.0))
+        world.crowd.goal_sampler = None
+        _run(world, 0.0, 0.0, 100)
+        assert world.crowd.positions[0, 0] > 2.5  # it went past
+        gaps[comfort] = world.min_separation
+    assert gaps[0.0] < 0.1
+    assert gaps[0.25] >= 0.2
+
+
+def test_people_decide_every_period_and_walk_straight_in_between() -> None:
+    """Driven at the base's irregular event times, velocities change only at multiples of
+    crowd.decision_period_s; with a period of 0 every step is a decision, as ORCA's own step."""
+    data = _scene(crowd={"count": 6, "speed_range": [0.5, 1.0]}, area={
+        "x_min": -5.0, "x_max": 5.0, "y_min": -5.0, "y_max": 5.0})
+    world = World(parse_scenario(data, "test"))
+    t, changes, last = 0.0, [], world.crowd.velocities.copy()
+    for dt in [0.02, 0.013, 0.017, 0.05] * 30:
+        world.follow_robot(dt, 0.0, 0.0, 0.0, 0.0, 0.0)
+        t += dt
+        if not np.array_equal(world.crowd.velocities, last):
+            changes.append(t)
+            last = world.crowd.velocities.copy()
+    assert len(changes) >= 20
+    # each change shows up at the end of the step in which a decision time k·0.1 s fell
+    assert all(math.floor((c + 1e-9) / 0.1) > math.floor((c - 0.05 - 1e-9) / 0.1)
+               for c in changes)
+    data["crowd"]["decision_period_s"] = 0.0
+    a, b = World(parse_scenario(data, "test")), World(parse_scenario(data, "test"))
+    for dt in [0.02, 0.013, 0.05] * 10:
+        a.follow_robot(dt, 0.0, 0.0, 0.0, 0.0, 0.0)
+        b.crowd.step(dt, b.shapes)
+    assert np.array_equal(a.crowd.positions, b.crowd.positions)
 
 
 def test_reaching_goal_is_success() -> None:

@@ -62,6 +62,9 @@ Discretisation is made conservative: the check at sample times uses slacks (half
 centre / a track / the clearance can change between samples for (a)/(b); a full step of lead-point
 motion, as a dilation of bearing and range, for (c)/(d)), so a continuous-time violation of the
 model is always caught at the neighbouring sample.
+
+`certify_batch` decides many commands in one pass, their trajectories padded to one sample grid;
+`certify` is the same computation for one command, explained, so the two always agree.
 """
 
 from __future__ import annotations
@@ -160,43 +163,64 @@ class Certificate:
     time_of_min: float  # s, when it occurs
 
 
-def _brake(x: float, rate: float, t: np.ndarray) -> np.ndarray:
-    return np.sign(x) * np.maximum(abs(x) - rate * t, 0.0)
+def _brake(x: np.ndarray, rate: float, t: np.ndarray) -> np.ndarray:
+    return np.sign(x) * np.maximum(np.abs(x) - rate * t, 0.0)
 
 
-def rollout(cmd: Twist, state: Twist, cfg: ShieldConfig, limits: LimitsConfig
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, Twist]:
-    """The certificate's trajectory: times (N,), poses (N, 3), v (N,), ω (N,), and the twist u
-    held in phase 1. Samples every check_dt (plus the exact end time)."""
-    u = apply_limits(cmd, state, cfg.period, limits) if cfg.model_limits else cmd
+@dataclass(slots=True)  # not frozen: one per certificate, and frozen ones build slower
+class Rollouts:
+    """K certificate trajectories on one sample grid. Row k's samples are j <= n[k], every
+    check step of its own length plus its exact end time; later ones pad the grid (the robot
+    stands where it stopped)."""
+
+    ts: np.ndarray  # (K, N) times
+    pose: np.ndarray  # (K, N, 3)
+    vs: np.ndarray  # (K, N)
+    u: np.ndarray  # (K, 2) the twist held in phase 1
+    n: np.ndarray  # (K,) last sample of each row
+    h: np.ndarray  # (K,) time between the row's samples
+    valid: np.ndarray  # (K, N) whether a sample belongs to its row's trajectory
+
+
+def rollouts(cmds: np.ndarray, state: Twist, cfg: ShieldConfig, limits: LimitsConfig
+             ) -> Rollouts:
+    """The certificate's trajectories of K finite commands (K, 2) of (v, ω), all at once."""
     t1 = cfg.latency + cfg.period
-    t_stop = t1 + max(abs(u.v) / limits.decel_max, abs(u.omega) / limits.alpha_max)
-    n = max(math.ceil(t_stop / cfg.check_dt - 1e-9), 1)
-    h = t_stop / n if t_stop > 0 else cfg.check_dt
+    rows = []  # per command (they are few): u, the number of samples and their spacing
+    for v, w in np.asarray(cmds, dtype=float).reshape(-1, 2).tolist():
+        u = Twist(v, w)
+        if cfg.model_limits:
+            u = apply_limits(u, state, cfg.period, limits)
+        t_stop = t1 + max(abs(u.v) / limits.decel_max, abs(u.omega) / limits.alpha_max)
+        steps = max(math.ceil(t_stop / cfg.check_dt - 1e-9), 1)
+        rows.append((u.v, u.omega, steps, t_stop / steps if t_stop > 0 else cfg.check_dt))
+    table = np.array(rows, dtype=float).reshape(-1, 4)
+    uv, uw, h = table[:, :1], table[:, 1:2], table[:, 3]
+    n = table[:, 2].astype(int)
     m = cfg.substeps
-    tf = np.arange(n * m + 1) * (h / m)
-    tm = tf[:-1] + 0.5 * (h / m)  # midpoints of sub-steps
+    ds = (h / m)[:, None]
+    tf = np.arange(int(n.max()) * m + 1)[None, :] * ds
+    tm = tf[:, :-1] + 0.5 * ds  # midpoints of sub-steps
 
-    def twist_at(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        v = np.where(t < cfg.latency, state.v, u.v)
-        w = np.where(t < cfg.latency, state.omega, u.omega)
+    def speed_at(t: np.ndarray, now: float, held: np.ndarray, rate: float) -> np.ndarray:
+        """v or ω at times t: `now` until the latency, `held` from then, braking at `rate`
+        from t1."""
         tb = t - t1
-        brake = tb >= 0
-        v = np.where(brake, _brake(u.v, limits.decel_max, np.maximum(tb, 0)), v)
-        w = np.where(brake, _brake(u.omega, limits.alpha_max, np.maximum(tb, 0)), w)
-        return v, w
+        return np.where(tb >= 0, _brake(held, rate, np.maximum(tb, 0)),
+                        np.where(t < cfg.latency, now, held))
 
-    vm, wm = twist_at(tm)
-    ds = h / m
-    th = np.concatenate(([0.0], np.cumsum(wm * ds)))
-    thm = 0.5 * (th[:-1] + th[1:])
-    x = np.concatenate(([0.0], np.cumsum(vm * np.cos(thm) * ds)))
-    y = np.concatenate(([0.0], np.cumsum(vm * np.sin(thm) * ds)))
-    idx = np.arange(0, n * m + 1, m)
-    ts = tf[idx]
-    vs, ws = twist_at(ts)
-    # the sampled velocity at phase boundaries: use the larger magnitude of either side
-    return ts, np.stack([x[idx], y[idx], th[idx]], axis=1), vs, ws, u
+    vm = speed_at(tm, state.v, uv, limits.decel_max)
+    wm = speed_at(tm, state.omega, uw, limits.alpha_max)
+    x, y, th = np.zeros((3, *tf.shape))  # integrated from 0 at t = 0
+    np.cumsum(wm * ds, axis=1, out=th[:, 1:])
+    thm = 0.5 * (th[:, :-1] + th[:, 1:])
+    np.cumsum(vm * np.cos(thm) * ds, axis=1, out=x[:, 1:])
+    np.cumsum(vm * np.sin(thm) * ds, axis=1, out=y[:, 1:])
+    ts = tf[:, ::m]
+    vs = speed_at(ts, state.v, uv, limits.decel_max)
+    pose = np.stack([x[:, ::m], y[:, ::m], th[:, ::m]], axis=2)
+    return Rollouts(ts, pose, vs, table[:, :2], n, ts[:, 1] - ts[:, 0],
+                    np.arange(ts.shape[1])[None, :] <= n[:, None])
 
 
 @dataclass(frozen=True)
@@ -237,55 +261,41 @@ def world_arrays(world: ShieldWorld) -> WorldArrays:
 
 
 def _track_at(wa: WorldArrays, track_dt: float, ts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Track centres (T, N, 2) and std (T, N) at times ts, piecewise linear with linear
-    extrapolation."""
+    """Track centres (T, K, N, 2) and std (T, K, N) at times ts (K, N), piecewise linear with
+    linear extrapolation."""
     P, S = wa.tracks, wa.std
-    ns = P.shape[1]
+    nt, ns = P.shape[0], P.shape[1]
     if ns == 1:
-        return np.repeat(P, len(ts), axis=1), np.repeat(S, len(ts), axis=1)
+        return (np.broadcast_to(P[:, None, :, :], (nt, *ts.shape, 2)),
+                np.broadcast_to(S[:, None, :], (nt, *ts.shape)))
     f = ts / track_dt
     k = np.clip(np.floor(f).astype(int), 0, ns - 2)
-    a = (f - k)[None, :]
+    a = (f - k)[None]
     pos = P[:, k] + a[..., None] * (P[:, k + 1] - P[:, k])
     std = S[:, k] + a * (S[:, k + 1] - S[:, k])
     return pos, np.maximum(std, 0.0)
 
 
 def _swept_distance(c: np.ndarray, p0: np.ndarray, pt: np.ndarray) -> np.ndarray:
-    """(T, N) distance from the robot's centre c (N, 2) to the segment from where each track is
-    now, p0 (T, 1, 2), to where it is predicted at that time, pt (T, N, 2): a person may stop
-    anywhere along the way, so the robot may not bank on them walking on out of its path."""
-    seg = pt - p0
-    rel = c[None, :, :] - p0
-    along = np.einsum("tnk,tnk->tn", rel, seg) / np.maximum(np.einsum("tnk,tnk->tn", seg, seg),
-                                                           1e-18)
+    """(T, K, N) distance from the robot's centre c (K, N, 2) to the segment from where each
+    track is now, p0 (T, 1, 1, 2), to where it is predicted at that time, pt (T, K, N, 2): a
+    person may stop anywhere along the way, so the robot may not bank on them walking on out of
+    its path."""
+    sx, sy = pt[..., 0] - p0[..., 0], pt[..., 1] - p0[..., 1]
+    rx, ry = c[..., 0] - p0[..., 0], c[..., 1] - p0[..., 1]
+    along = (rx * sx + ry * sy) / np.maximum(sx * sx + sy * sy, 1e-18)
     np.clip(along, 0.0, 1.0, out=along)
-    d = rel - along[..., None] * seg
-    return np.hypot(d[..., 0], d[..., 1])
+    return np.hypot(rx - along * sx, ry - along * sy)
 
 
 _OUTSIDE, _UNKNOWN, _SHADOW, _BLIND = 1, 2, 3, 4
 
 
-def _approach_margin(cfg: ShieldConfig, c: np.ndarray, heading: np.ndarray, vs: np.ndarray,
-                     ts: np.ndarray, q: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """(N, Q) extra distance for untracked points (module docs (a)): untracked_approach·t where
-    the robot closes on the point within the front half-angle, else 0. `ts`: times since the
-    points were seen (the depth frame's age included: a person walks on while it is read)."""
-    rel_x = q[None, :, 0] - c[:, None, 0]
-    rel_y = q[None, :, 1] - c[:, None, 1]
-    along = (rel_x * np.cos(heading)[:, None] + rel_y * np.sin(heading)[:, None]) / np.maximum(
-        d, 1e-9)  # cos of the point's bearing from the heading
-    closing = vs[:, None] * along > STILL_M_S  # the robot's speed toward the point
-    front = np.abs(along) >= math.cos(math.radians(cfg.approach_half_angle_deg))
-    return np.where(closing & front, cfg.untracked_approach_m_s * ts[:, None], 0.0)
-
-
-def _unseen(wa: WorldArrays, cfg: ShieldConfig, pts: np.ndarray, slack: float
+def _unseen(wa: WorldArrays, cfg: ShieldConfig, pts: np.ndarray, slack: np.ndarray
             ) -> tuple[np.ndarray, np.ndarray]:
     """For lead points (L, 2): why each is in unseen space (0 = it is not; _OUTSIDE, _UNKNOWN,
-    _SHADOW, _BLIND) and the offending bin (-1 = outside view). Dilated by `slack` in range and
-    bearing."""
+    _SHADOW, _BLIND) and the offending bin (-1 = outside view). Dilated by `slack` (L,) in range
+    and bearing."""
     nb = len(wa.scan)
     kind = np.zeros(len(pts), dtype=np.int8)
     where = np.full(len(pts), -1)
@@ -316,6 +326,179 @@ def _unseen(wa: WorldArrays, cfg: ShieldConfig, pts: np.ndarray, slack: float
     return kind, where
 
 
+@dataclass(slots=True)  # not frozen: one per certificate, and frozen ones build slower
+class _Margins:
+    """How K commands fare in each test, sample by sample (< 0: violated; +inf on the grid's
+    padding): what `certify_batch` reduces to decisions and `certify` explains."""
+
+    ts: np.ndarray  # (K, N) sample times
+    point_cmd: np.ndarray  # (P,) the command of each (command, point near its path) pair
+    point_xy: np.ndarray  # (P, 2) the point
+    point_at: np.ndarray  # (E,) the entries of (P, N) (pair, sample) with margins below
+    points: np.ndarray  # (E,) margins of (a)
+    approach: np.ndarray  # (E,) the untracked-approach margin taken off them
+    floor: np.ndarray  # (E,) the braking path's floor taken off them (0: the rule as stated)
+    tracks: np.ndarray  # (T, K, N) margins of (b)
+    lead_cmd: np.ndarray  # (M,) the command and sample of each translating sample's lead arc
+    lead_sample: np.ndarray  # (M,)
+    lead_kind: np.ndarray  # (M, L) why a lead point is unseen (0: seen, or inside the disc)
+    lead_bin: np.ndarray  # (M, L) its bin (-1: outside the view)
+
+
+def _point_margins(p: Rollouts, ref: np.ndarray, slack_c: np.ndarray, tol_ref: np.ndarray,
+                   pts: np.ndarray, age: float, cfg: ShieldConfig, explain: bool
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                              np.ndarray]:
+    """(a) as the _Margins fields from point_cmd to floor, for the (command, point) pairs
+    inside each path's bounding box grown by the farthest a point can matter (outside it every
+    margin is positive). `explain`: every entry; else only those that may be violated: the
+    floor (<= 0) and the approach margin (<= untracked_approach·t) can only take off up to
+    that bound from the margin without them (float rounding is monotonic), so an entry whose
+    margin without them is at least the bound is not violated, and most entries skip the
+    braking path and the bearing."""
+    R = cfg.footprint
+    speed = cfg.untracked_approach_m_s
+    cx, cy = p.pose[..., 0], p.pose[..., 1]  # the padding repeats the last pose: no effect
+    reach = (R + slack_c + speed * (p.ts[np.arange(len(p.n)), p.n] + age))[:, None]
+    px, py = pts[None, :, 0], pts[None, :, 1]
+    near = ((px >= cx.min(axis=1)[:, None] - reach) & (px <= cx.max(axis=1)[:, None] + reach)
+            & (py >= cy.min(axis=1)[:, None] - reach) & (py <= cy.max(axis=1)[:, None] + reach))
+    pk, pj = np.nonzero(near)
+    if not len(pk):
+        return pk, pts[pj], pk, np.zeros(0), np.zeros(0), np.zeros(0)
+    qx, qy = pts[pj, :1], pts[pj, 1:]
+    rx, ry = qx - cx[pk], qy - cy[pk]  # (P, N) the point relative to the centre
+    d = np.sqrt(rx * rx + ry * ry)
+    base = d - R - slack_c[pk, None]
+    late = speed * (p.ts[pk] + age)  # the approach margin, where it applies
+    outside = d[:, :1] >= R  # the point is outside the footprint now
+    # at the entries: per_sample of a (K, N) array, per_entry of a (P, N) or (P, 1) one
+    if explain:
+        at = np.arange(d.size)
+        k = pk[:, None]
+
+        def per_sample(a: np.ndarray) -> np.ndarray:
+            return a[pk]
+
+        def per_entry(a: np.ndarray) -> np.ndarray:
+            return a
+    else:
+        at = np.flatnonzero((base - late < 0) & p.valid[pk])
+        i, j = np.divmod(at, d.shape[1])
+        k = pk[i]
+        kj = k * d.shape[1] + j
+
+        def per_sample(a: np.ndarray) -> np.ndarray:
+            return np.ravel(a).take(kj)
+
+        def per_entry(a: np.ndarray) -> np.ndarray:
+            return a.take(at) if a.shape[1] > 1 else a.take(i)  # (P, 1): one value a pair
+    # where braking would bring a point over the footprint, the command may bring it no closer
+    # than braking would (see module docs)
+    fx, fy = per_sample(ref[..., 0]) - per_entry(qx), per_sample(ref[..., 1]) - per_entry(qy)
+    floor = np.minimum(np.sqrt(fx * fx + fy * fy) - R - slack_c[k] - tol_ref[k], 0.0)
+    if speed > 0.0:
+        # closing on a point ahead (cos of its bearing from the heading) outside the footprint
+        th = per_sample(p.pose[..., 2])
+        along = ((per_entry(rx) * np.cos(th) + per_entry(ry) * np.sin(th))
+                 / np.maximum(per_entry(d), 1e-9))
+        closing = per_sample(p.vs) * along > STILL_M_S  # the robot's speed toward the point
+        front = np.abs(along) >= math.cos(math.radians(cfg.approach_half_angle_deg))
+        approach = np.where(closing & front & per_entry(outside), per_entry(late), 0.0)
+    else:
+        approach = np.zeros_like(floor)
+    marg = np.where(per_sample(p.valid), per_entry(base) - floor - approach, np.inf)
+    return pk, pts[pj], at, np.ravel(marg), np.ravel(approach), np.ravel(floor)
+
+
+def _track_margins(p: Rollouts, ref: np.ndarray, vmax: np.ndarray, tol_ref: np.ndarray,
+                   wa: WorldArrays, track_dt: float, cfg: ShieldConfig) -> np.ndarray:
+    """(b) margins (T, K, N)."""
+    c = p.pose[..., :2]
+    tp, tstd = _track_at(wa, track_dt, p.ts)
+    slack_t = (0.5 * (vmax + wa.track_speed + cfg.k_sigma * wa.std_rate) * p.h + 1e-9)[:, None]
+    p0 = wa.tracks[:, None, :1, :]  # where each track is now
+    reach = cfg.footprint + wa.radii[:, None] + cfg.k_sigma * tstd
+    gap = _swept_distance(c, p0, tp) - reach
+    # where a track would overlap the footprint of the robot braking now, it may come no closer
+    # than that (see module docs)
+    braking_gap = _swept_distance(ref, p0, tp) - reach
+    floor = np.minimum(braking_gap - slack_t - tol_ref[:, None], 0.0)
+    return np.where(p.valid, gap - slack_t - floor, np.inf)
+
+
+def _lead_kinds(p: Rollouts, vmax: np.ndarray, wmax: np.ndarray, wa: WorldArrays,
+                cfg: ShieldConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(c)/(d) at the lead arc of every translating sample: its command, sample, and each lead
+    point's unseen kind and bin, as in _Margins."""
+    moving = (p.vs != 0.0) & p.valid
+    if cfg.reverse_into_unseen:
+        moving &= p.vs > 0.0
+    beta = math.radians(cfg.lead_half_angle_deg)
+    offs = np.linspace(-beta, beta, cfg.lead_rays) if cfg.lead_rays > 1 else np.zeros(1)
+    at = np.flatnonzero(moving)
+    kk, jj = np.divmod(at, moving.shape[1])
+    if not len(at):
+        return kk, jj, np.zeros((0, len(offs)), np.int8), np.zeros((0, len(offs)), int)
+    R = cfg.footprint
+    pose = p.pose.reshape(-1, 3)[at]
+    heading = pose[:, 2] + np.where(p.vs.ravel()[at] < 0, math.pi, 0.0)
+    ang = heading[:, None] + offs[None, :]
+    lead = pose[:, None, :2] + R * np.stack([np.cos(ang), np.sin(ang)], axis=2)
+    lead = lead.reshape(-1, 2)
+    slack_u = np.repeat(((vmax + R * wmax) * p.h + 1e-9)[kk], len(offs))
+    outside_disc = np.hypot(lead[:, 0], lead[:, 1]) > R + cfg.unseen_tolerance - slack_u
+    kind, where = _unseen(wa, cfg, lead, slack_u)
+    kind[~outside_disc] = 0
+    return kk, jj, kind.reshape(len(kk), -1), where.reshape(len(kk), -1)
+
+
+def _margins(cmds: np.ndarray, state: Twist, world: ShieldWorld, wa: WorldArrays,
+             cfg: ShieldConfig, limits: LimitsConfig,
+             braking: tuple[np.ndarray, np.ndarray] | None, explain: bool) -> _Margins:
+    """The tests' margins for finite commands (K, 2) from a finite state (`explain`: every
+    one, else those a decision needs)."""
+    p = rollouts(cmds, state, cfg, limits)
+    vmax = np.maximum(abs(state.v), np.abs(p.u[:, 0]))
+    wmax = np.maximum(abs(state.omega), np.abs(p.u[:, 1]))
+    slack_c = 0.5 * vmax * p.h + 1e-9
+    # the two paths' sub-steps fall differently on the phase boundaries: up to one sub-step's
+    # motion each (a tolerance of the robot's own speed only: a fast track must not widen it,
+    # or the robot may creep on into a person walking at it)
+    tol_ref = 2.0 * vmax * p.h / cfg.substeps + 1e-9
+    ref = p.pose[..., :2]
+    if len(wa.points) or len(wa.tracks):
+        rt, rxy = braking if braking is not None else braking_rollout(state, cfg, limits)
+        ref = np.stack([np.interp(p.ts, rt, rxy[:, 0]), np.interp(p.ts, rt, rxy[:, 1])], axis=2)
+    tracks = (_track_margins(p, ref, vmax, tol_ref, wa, world.track_dt, cfg) if len(wa.tracks)
+              else np.zeros((0, *p.ts.shape)))
+    return _Margins(p.ts, *_point_margins(p, ref, slack_c, tol_ref, wa.points,
+                                          max(world.points_age, 0.0), cfg, explain),
+                    tracks, *_lead_kinds(p, vmax, wmax, wa, cfg))
+
+
+def certify_batch(cmds: np.ndarray, state: Twist, world: ShieldWorld, cfg: ShieldConfig,
+                  limits: LimitsConfig | None = None, arrays: WorldArrays | None = None,
+                  braking: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """`certify(...).ok` of each of the commands (K, 2) of (v, ω), all in one pass: a
+    certificate's cost is mostly numpy's per-call overhead, which the K commands share, and a
+    decision needs only the pairs of command and point that may be violated."""
+    limits = limits if limits is not None else LimitsConfig()
+    cmds = np.asarray(cmds, dtype=float).reshape(-1, 2)
+    ok = np.all(np.isfinite(cmds), axis=1) & state.is_finite()
+    if not ok.any():
+        return ok
+    wa = arrays if arrays is not None else world_arrays(world)
+    mg = _margins(cmds[ok], state, world, wa, cfg, limits, braking, explain=False)
+    failed = np.zeros(int(ok.sum()), dtype=bool)
+    failed[mg.point_cmd[mg.point_at[mg.points < 0] // mg.ts.shape[1]]] = True
+    if mg.tracks.size:  # NaN counts as no violation, as argmin finds it in `certify`
+        failed |= mg.tracks.min(axis=(0, 2)) < 0
+    failed[mg.lead_cmd[(mg.lead_kind != 0).any(axis=1)]] = True
+    ok[ok] = ~failed
+    return ok
+
+
 def certify(cmd: Twist, state: Twist, world: ShieldWorld, cfg: ShieldConfig,
             limits: LimitsConfig | None = None, arrays: WorldArrays | None = None,
             braking: tuple[np.ndarray, np.ndarray] | None = None) -> Certificate:
@@ -326,70 +509,33 @@ def certify(cmd: Twist, state: Twist, world: ShieldWorld, cfg: ShieldConfig,
     if not (cmd.is_finite() and state.is_finite()):
         return Certificate(False, "non-finite command or state", -math.inf, 0.0)
     wa = arrays if arrays is not None else world_arrays(world)
-    ts, pose, vs, _ws, u = rollout(cmd, state, cfg, limits)
+    mg = _margins(np.array([[cmd.v, cmd.omega]], dtype=float), state, world, wa, cfg, limits,
+                  braking, explain=True)
+    ts = mg.ts[0]
     R = cfg.footprint
-    c = pose[:, :2]
-    h = float(ts[1] - ts[0]) if len(ts) > 1 else cfg.check_dt
-    vmax = max(abs(state.v), abs(u.v))
-    wmax = max(abs(state.omega), abs(u.omega))
-    slack_c = 0.5 * vmax * h + 1e-9
     best = (math.inf, 0.0)
     failures: list[tuple[float, str]] = []
-    ref = c
-    if len(wa.points) or len(wa.tracks):
-        rt, rxy = braking if braking is not None else braking_rollout(state, cfg, limits)
-        ref = np.stack([np.interp(ts, rt, rxy[:, 0]), np.interp(ts, rt, rxy[:, 1])], axis=1)
-    # the two paths' sub-steps fall differently on the phase boundaries: up to one sub-step's
-    # motion each (a tolerance of the robot's own speed only: a fast track must not widen it,
-    # or the robot may creep on into a person walking at it)
-    tol_ref = 2.0 * vmax * h / cfg.substeps + 1e-9
 
-    # (a) static points: bounding-box prefilter, then all distances
-    pts = wa.points
-    if len(pts):
-        age = max(world.points_age, 0.0)
-        reach = R + slack_c + cfg.untracked_approach_m_s * (float(ts[-1]) + age)
-        lo_b = c.min(axis=0) - reach
-        hi_b = c.max(axis=0) + reach
-        near = np.all((pts >= lo_b) & (pts <= hi_b), axis=1)
-        q = pts[near]
-        if len(q):
-            d = np.sqrt(((c[:, None, :] - q[None, :, :]) ** 2).sum(axis=2))  # (N, Q)
-            # where braking would bring a point over the footprint, the command may bring it no
-            # closer than braking would (see module docs)
-            ref_gap = np.sqrt(((ref[:, None, :] - q[None, :, :]) ** 2).sum(axis=2)) - R
-            floor = np.minimum(ref_gap - slack_c - tol_ref, 0.0)
-            outside = d[0] >= R
-            approach = (np.where(outside[None, :],
-                                 _approach_margin(cfg, c, pose[:, 2], vs, ts + age, q, d), 0.0)
-                        if cfg.untracked_approach_m_s > 0.0 else np.zeros_like(d))
-            marg = d - R - slack_c - floor - approach
-            i, j = np.unravel_index(int(np.argmin(marg)), marg.shape)
-            margin = float(marg[i, j])
-            best = min(best, (margin, float(ts[i])))
-            if margin < 0:
-                ibad = int(np.argmax((marg < 0).any(axis=1)))
-                tbad = float(ts[ibad])
-                jbad = int(np.argmax(marg[ibad] < 0))
-                p = q[jbad]
-                what = ("drive at (it may be a person walking in)" if approach[ibad, jbad] > 0
-                        else f"come within {R:.2f} m of" if floor[ibad, jbad] == 0.0
-                        else "come closer than braking to")
-                failures.append((tbad, (f"cmd would {what} the obstacle point "
-                                       f"({p[0]:.2f}, {p[1]:.2f}) at t={tbad:.2f} s")))
+    if len(mg.point_cmd):
+        # (N, Q): `explain` keeps every entry
+        marg, approach, floor = (a.reshape(len(mg.point_cmd), -1).T
+                                 for a in (mg.points, mg.approach, mg.floor))
+        i, j = np.unravel_index(int(np.argmin(marg)), marg.shape)
+        margin = float(marg[i, j])
+        best = min(best, (margin, float(ts[i])))
+        if margin < 0:
+            ibad = int(np.argmax((marg < 0).any(axis=1)))
+            tbad = float(ts[ibad])
+            jbad = int(np.argmax(marg[ibad] < 0))
+            p = mg.point_xy[jbad]
+            what = ("drive at (it may be a person walking in)" if approach[ibad, jbad] > 0
+                    else f"come within {R:.2f} m of" if floor[ibad, jbad] == 0.0
+                    else "come closer than braking to")
+            failures.append((tbad, (f"cmd would {what} the obstacle point "
+                                   f"({p[0]:.2f}, {p[1]:.2f}) at t={tbad:.2f} s")))
 
-    # (b) tracks
-    nt = len(wa.tracks)
-    if nt:
-        tp, ts_std = _track_at(wa, world.track_dt, ts)
-        slack_t = 0.5 * (vmax + wa.track_speed + cfg.k_sigma * wa.std_rate) * h + 1e-9
-        p0 = wa.tracks[:, :1, :]  # where each track is now
-        gap = _swept_distance(c, p0, tp) - (R + wa.radii + cfg.k_sigma * ts_std)  # (T, N)
-        # where a track would overlap the footprint of the robot braking now, it may come no
-        # closer than that (see module docs)
-        braking_gap = _swept_distance(ref, p0, tp) - (R + wa.radii + cfg.k_sigma * ts_std)
-        floor = np.minimum(braking_gap - slack_t - tol_ref, 0.0)
-        marg = gap - slack_t - floor
+    if mg.tracks.size:
+        marg = mg.tracks[:, 0]  # (T, N)
         a, k = np.unravel_index(int(np.argmin(marg)), marg.shape)
         best = min(best, (float(marg[a, k]), float(ts[k])))
         if marg[a, k] < 0:
@@ -400,31 +546,16 @@ def certify(cmd: Twist, state: Twist, world: ShieldWorld, cfg: ShieldConfig,
             tid = world.track_ids[abad] if world.track_ids is not None else abad
             failures.append((tbad, f"cmd would reach track {tid} at t={tbad:.2f} s"))
 
-    # (c)/(d) unseen space at the lead arc
-    moving = vs != 0.0
-    if cfg.reverse_into_unseen:
-        moving &= vs > 0.0
-    if moving.any():
-        beta = math.radians(cfg.lead_half_angle_deg)
-        offs = np.linspace(-beta, beta, cfg.lead_rays) if cfg.lead_rays > 1 else np.zeros(1)
-        kk = np.nonzero(moving)[0]
-        heading = pose[kk, 2] + np.where(vs[kk] < 0, math.pi, 0.0)
-        ang = heading[:, None] + offs[None, :]
-        lead = c[kk, None, :] + R * np.stack([np.cos(ang), np.sin(ang)], axis=2)
-        lead = lead.reshape(-1, 2)
-        slack_u = (vmax + R * wmax) * h + 1e-9
-        outside_disc = np.hypot(lead[:, 0], lead[:, 1]) > R + cfg.unseen_tolerance - slack_u
-        kind, where = _unseen(wa, cfg, lead, slack_u)
-        bad = (kind != 0) & outside_disc
-        if bad.any():
-            f = int(np.argmax(bad))
-            tbad = float(ts[kk[f // len(offs)]])
-            b = int(where[f])
-            what = {_OUTSIDE: "space outside the camera's view",
-                    _UNKNOWN: f"unseen space in bin {b}",
-                    _SHADOW: f"space behind the scan return in bin {b}",
-                    _BLIND: f"the camera's blind zone in bin {b}"}[int(kind[f])]
-            failures.append((tbad, f"cmd would enter {what} at t={tbad:.2f} s"))
+    bad = (mg.lead_kind != 0).ravel()
+    if bad.any():
+        f = int(np.argmax(bad))
+        tbad = float(ts[mg.lead_sample[f // mg.lead_kind.shape[1]]])
+        b = int(mg.lead_bin.ravel()[f])
+        what = {_OUTSIDE: "space outside the camera's view",
+                _UNKNOWN: f"unseen space in bin {b}",
+                _SHADOW: f"space behind the scan return in bin {b}",
+                _BLIND: f"the camera's blind zone in bin {b}"}[int(mg.lead_kind.ravel()[f])]
+        failures.append((tbad, f"cmd would enter {what} at t={tbad:.2f} s"))
 
     if failures:
         failures.sort(key=lambda x: x[0])
@@ -436,8 +567,9 @@ def braking_rollout(state: Twist, cfg: ShieldConfig, limits: LimitsConfig
                     ) -> tuple[np.ndarray, np.ndarray]:
     """Times (N,) and positions (N, 2) of the robot if the shield brakes now (its fallback);
     it stands where it stops."""
-    rt, rpose, *_ = rollout(brake_command(state, cfg, limits), state, cfg, limits)
-    return rt, rpose[:, :2]
+    br = brake_command(state, cfg, limits)
+    p = rollouts(np.array([[br.v, br.omega]], dtype=float), state, cfg, limits)
+    return p.ts[0], p.pose[0, :, :2]
 
 
 def brake_command(state: Twist, cfg: ShieldConfig, limits: LimitsConfig) -> Twist:

@@ -86,7 +86,7 @@ class SafeMoveEnv(gym.Env):
                                         self.loaded.calibration, self.fps, self.noise, self.crowd)
         self._job = SafeMoveJob(self._episode.goal_odom, self.loaded.config, None, None,
                                 spec=self.obs_spec)
-        self._pipeline = Pipeline(self.loaded.config, self.loaded.calibration, self._job)
+        self._pipeline = Pipeline(self._episode.config, self.loaded.calibration, self._job)
         self._distance = self._true_distance()
         self._t = 0.0
         obs, outcome = self._advance()
