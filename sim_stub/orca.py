@@ -470,22 +470,24 @@ class Crowd:
             obst_lines[:, o] = np.concatenate([p, d], -1)
             obst_gap[:, o] = gap
 
+        # per agent, which lines apply: plain Python lists, one conversion per decision
+        reach = prm.obstacle_time_horizon * self.max_speeds + rad
+        obst_use = (obst_gap < reach[:, None]).tolist()
+        near_use = (dist < prm.neighbour_distance).tolist()
+        body_use = (body_dist < prm.neighbour_distance).tolist()
+        obst_l, pair_l, body_l = obst_lines.tolist(), pair_lines.tolist(), body_lines.tolist()
+        dist_l, pref_l, max_l = dist.tolist(), pref.tolist(), self.max_speeds.tolist()
         for i in range(n):
-            lines: list[Line] = []
-            reach = prm.obstacle_time_horizon * self.max_speeds[i] + rad[i]
-            for o in np.flatnonzero(obst_gap[i] < reach):
-                lines.append(tuple(obst_lines[i, o].tolist()))  # type: ignore[arg-type]
+            lines: list[Line] = [tuple(obst_l[i][o])  # type: ignore[misc]
+                                 for o, use in enumerate(obst_use[i]) if use]
             num_hard = len(lines)
-            near = np.flatnonzero(dist[i] < prm.neighbour_distance)
-            if len(near) > prm.max_neighbours:
-                near = near[np.argsort(dist[i, near], kind="stable")[: prm.max_neighbours]]
-            for j in near:
-                lines.append(tuple(pair_lines[i, j].tolist()))  # type: ignore[arg-type]
-            for b in np.flatnonzero(body_dist[i] < prm.neighbour_distance):
-                lines.append(tuple(body_lines[i, b].tolist()))  # type: ignore[arg-type]
-            chosen = solve_velocity(
-                lines, num_hard, float(self.max_speeds[i]), (float(pref[i, 0]), float(pref[i, 1]))
-            )
+            near = [j for j, use in enumerate(near_use[i]) if use]
+            if len(near) > prm.max_neighbours:  # the nearest (stable: ties by index)
+                near = sorted(near, key=dist_l[i].__getitem__)[: prm.max_neighbours]
+            lines += [tuple(pair_l[i][j]) for j in near]
+            lines += [tuple(body_l[i][b])  # type: ignore[misc]
+                      for b, use in enumerate(body_use[i]) if use]
+            chosen = solve_velocity(lines, num_hard, max_l[i], (pref_l[i][0], pref_l[i][1]))
             out[i] = _bounded_change(chosen, vel[i], prm.max_accel * dt, lines[:num_hard])
         return out
 
