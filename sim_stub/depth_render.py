@@ -74,6 +74,20 @@ class Scene:
     floor: bool = True
 
 
+_CORNER_SIGNS = np.array([(sx, sy, sz) for sx in (-1, 1) for sy in (-1, 1) for sz in (0, 1)],
+                         dtype=float)
+
+
+def _corners(objects: list[tuple[float, float, float, float, float, float]]) -> np.ndarray:
+    """(K, 8, 3) corners of upright boxes (x, y, half x, half y, yaw, height) on the floor."""
+    a = np.array(objects, dtype=float)
+    c, s = np.cos(a[:, 4:5]), np.sin(a[:, 4:5])
+    lx = _CORNER_SIGNS[None, :, 0] * a[:, 2:3]
+    ly = _CORNER_SIGNS[None, :, 1] * a[:, 3:4]
+    return np.stack([a[:, 0:1] + c * lx - s * ly, a[:, 1:2] + s * lx + c * ly,
+                     _CORNER_SIGNS[None, :, 2] * a[:, 5:6]], axis=2)
+
+
 DECIMATIONS = (1, 2, 4)  # the perception decimations (powers of two: exact intrinsics)
 
 
@@ -154,47 +168,49 @@ class DepthRenderer:
         oz = F32(o[2])
         if scene.floor and o[2] > 0:
             np.divide(-oz, d[2], out=z, where=d[2] < 0)
-        for cyl in scene.cylinders:
-            self._cylinder(cyl, r, o, d, z)
-        for box in scene.boxes:
-            self._box(box, r, o, d, z)
+        objects = [(c.x, c.y, c.radius, c.radius, 0.0, c.height) for c in scene.cylinders]
+        objects += [(b.x, b.y, b.lx / 2, b.ly / 2, b.yaw, b.height) for b in scene.boxes]
+        rects = self._rects(_corners(objects), r, o) if objects else []
+        for cyl, rect in zip(scene.cylinders, rects):
+            if rect is not None:
+                self._cylinder(cyl, rect, o, d, z)
+        for box, rect in zip(scene.boxes, rects[len(scene.cylinders):]):
+            if rect is not None:
+                self._box(box, rect, o, d, z)
         return z
 
-    def _rect(self, corners: np.ndarray, r: np.ndarray, o: np.ndarray):
-        """Rendered-pixel rectangle (v0, v1, u0, u1) covering world corners, or None if not
-        visible: the full image's pixel rectangle, then the rendered pixels inside it."""
-        p = (corners - o) @ r  # optical coordinates (rows)
-        zs = p[:, 2]
-        if np.all(zs <= 1e-3) or zs.min() > self.max_range_m:
-            return None
-        h, w = self.intrinsics.height, self.intrinsics.width
-        if np.any(zs <= 1e-3):
-            return 0, h, 0, w
+    def _rects(self, corners: np.ndarray, r: np.ndarray, o: np.ndarray
+               ) -> list[tuple[int, int, int, int] | None]:
+        """Per object, the rendered-pixel rectangle (v0, v1, u0, u1) covering its world corners
+        (K, 8, 3), or None if not visible: the full image's pixel rectangle, then the rendered
+        pixels inside it. One projection for all objects."""
+        p = (corners - o) @ r  # optical coordinates
+        zs = p[..., 2]
+        behind = zs <= 1e-3
         k, d = self.full_intrinsics, self.decimation
-        us = k.fx * p[:, 0] / zs + k.cx
-        vs = k.fy * p[:, 1] / zs + k.cy
-        u0, u1 = max(math.floor(us.min()) - 1, 0), min(math.ceil(us.max()) + 2, k.width)
-        v0, v1 = max(math.floor(vs.min()) - 1, 0), min(math.ceil(vs.max()) + 2, k.height)
-        u0, u1, v0, v1 = -(-u0 // d), -(-u1 // d), -(-v0 // d), -(-v1 // d)  # ceil: d·j in [lo, hi)
-        if u0 >= u1 or v0 >= v1:
-            return None
-        return v0, v1, u0, u1
+        with np.errstate(divide="ignore", invalid="ignore"):
+            us = k.fx * p[..., 0] / zs + k.cx
+            vs = k.fy * p[..., 1] / zs + k.cy
+        hidden = (behind.all(axis=1) | (zs.min(axis=1) > self.max_range_m)).tolist()
+        across = behind.any(axis=1).tolist()  # partly behind the camera: the whole image
+        lo_u, hi_u = us.min(axis=1).tolist(), us.max(axis=1).tolist()
+        lo_v, hi_v = vs.min(axis=1).tolist(), vs.max(axis=1).tolist()
+        h, w = self.intrinsics.height, self.intrinsics.width
+        out: list[tuple[int, int, int, int] | None] = []
+        for i, gone in enumerate(hidden):
+            if gone:
+                out.append(None)
+                continue
+            if across[i]:
+                out.append((0, h, 0, w))
+                continue
+            u0, u1 = max(math.floor(lo_u[i]) - 1, 0), min(math.ceil(hi_u[i]) + 2, k.width)
+            v0, v1 = max(math.floor(lo_v[i]) - 1, 0), min(math.ceil(hi_v[i]) + 2, k.height)
+            u0, u1, v0, v1 = -(-u0 // d), -(-u1 // d), -(-v0 // d), -(-v1 // d)  # d·j in [lo, hi)
+            out.append(None if u0 >= u1 or v0 >= v1 else (v0, v1, u0, u1))
+        return out
 
-    @staticmethod
-    def _box_corners(cx, cy, hx, hy, yaw, height):
-        c, s = math.cos(yaw), math.sin(yaw)
-        pts = []
-        for sx in (-hx, hx):
-            for sy in (-hy, hy):
-                for zz in (0.0, height):
-                    pts.append((cx + c * sx - s * sy, cy + s * sx + c * sy, zz))
-        return np.array(pts)
-
-    def _cylinder(self, cyl: Cylinder, r, o, d, z) -> None:
-        rect = self._rect(self._box_corners(cyl.x, cyl.y, cyl.radius, cyl.radius, 0.0,
-                                            cyl.height), r, o)
-        if rect is None:
-            return
+    def _cylinder(self, cyl: Cylinder, rect: tuple[int, int, int, int], o, d, z) -> None:
         v0, v1, u0, u1 = rect
         dx, dy, dz = d[0, v0:v1, u0:u1], d[1, v0:v1, u0:u1], d[2, v0:v1, u0:u1]
         zz = z[v0:v1, u0:u1]
@@ -215,11 +231,8 @@ class DepthRenderer:
                 ok = (t > 0) & (px * px + py * py <= F32(cyl.radius**2))
                 np.minimum(zz, np.where(ok, t, F32(np.inf)), out=zz)
 
-    def _box(self, box: Box, r, o, d, z) -> None:
+    def _box(self, box: Box, rect: tuple[int, int, int, int], o, d, z) -> None:
         hx, hy = box.lx / 2, box.ly / 2
-        rect = self._rect(self._box_corners(box.x, box.y, hx, hy, box.yaw, box.height), r, o)
-        if rect is None:
-            return
         v0, v1, u0, u1 = rect
         dx, dy, dz = d[0, v0:v1, u0:u1], d[1, v0:v1, u0:u1], d[2, v0:v1, u0:u1]
         zz = z[v0:v1, u0:u1]
@@ -248,12 +261,14 @@ class DepthRenderer:
         z = self.render_z(robot_pose, scene)
         valid = (z >= F32(self.min_range_m)) & (z <= F32(self.max_range_m))
         zm = np.where(valid, z, F32(0.0))
-        if noise:
+        if noise:  # random numbers only where they act: valid pixels, edge pixels
+            clean = zm
             if self.noise_k > 0:
-                n = self.rng.standard_normal(zm.shape, dtype=F32)
-                zm = zm + F32(self.noise_k) * zm * zm * n
+                zm = zm.copy()
+                kept = zm[valid]
+                n = self.rng.standard_normal(kept.shape, dtype=F32)
+                zm[valid] = kept + F32(self.noise_k) * kept * kept * n
             if self.edge_dropout_p > 0:
-                clean = np.where(valid, z, F32(0.0))
                 jx = np.abs(np.diff(clean, axis=1)) > F32(self.edge_jump_m)
                 jy = np.abs(np.diff(clean, axis=0)) > F32(self.edge_jump_m)
                 edge = np.zeros(zm.shape, dtype=bool)
@@ -261,8 +276,9 @@ class DepthRenderer:
                 edge[:, :-1] |= jx
                 edge[1:, :] |= jy
                 edge[:-1, :] |= jy
-                drop = edge & (self.rng.random(zm.shape, dtype=F32) < F32(self.edge_dropout_p))
-                valid &= ~drop
+                at = np.flatnonzero(edge)
+                drop = at[self.rng.random(len(at), dtype=F32) < F32(self.edge_dropout_p)]
+                valid.ravel()[drop] = False
         units = np.rint(zm / F32(self.intrinsics.depth_unit_m))
         np.clip(units, 1, 65535, out=units)
         out = np.zeros(zm.shape, dtype=np.uint16)
