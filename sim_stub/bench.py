@@ -171,7 +171,7 @@ def _scan_of(points: Any, bin_angles: Any) -> Any:
     return scan
 
 
-def _ms_stats(seconds: list[float]) -> dict[str, float]:
+def ms_stats(seconds: list[float]) -> dict[str, float]:
     import numpy as np
 
     a = 1e3 * np.asarray(seconds)
@@ -265,7 +265,7 @@ def bench_planner(worlds: int = 20, calls: int = 10_000, p99_calls: int = 500,
                 lat[key].append(dt)
         out.update({"b_samples": r.evaluated, "b_calls": p99_calls,
                     "b_shield_interventions": interventions,
-                    **{f"b_{key}_ms": _ms_stats(v) for key, v in lat.items()}})
+                    **{f"b_{key}_ms": ms_stats(v) for key, v in lat.items()}})
 
         pool = [random_world(rng, 30, 500, 20, n_blobs=40) for _ in range(50)]
         over, rounds, cuts = [], 0, 0

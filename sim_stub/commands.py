@@ -93,6 +93,18 @@ def soak_run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_episode_args(p: argparse.ArgumentParser, crowd: str) -> None:
+    """How lock-stepped episodes are simulated: depth frame rate and noise, the crowd."""
+    p.add_argument("--fps", type=finite_float, default=15.0,
+                   help="depth frames per second (default 15)")
+    p.add_argument("--no-noise", dest="noise", action="store_false",
+                   help="render depth without the D435 noise model")
+    p.add_argument("--crowd", choices=("scenario", "reactive", "oblivious"), default=crowd,
+                   help="whether the people see and avoid the robot (default: "
+                        + ("as the scenario says; the paper scenarios ship oblivious)"
+                           if crowd == "scenario" else f"{crowd})"))
+
+
 def _bench_parser(bsub: Any, name: str, help_text: str, func: Callable[[argparse.Namespace], int]
                   ) -> argparse.ArgumentParser:
     """A `bench` subcommand: every benchmark prints figures and ends with one JSON line."""
@@ -138,6 +150,38 @@ def add_bench(p: argparse.ArgumentParser) -> None:
     bp.add_argument("--planner", choices=("hold", "dwa", "safemove"), default="safemove")
     bp.add_argument("--model", type=Path, metavar="FILE.onnx", help="the actor for safemove")
 
+    bp = _bench_parser(bsub, "episode", "lock-stepped cycles/s of the DWA and SafeMove jobs,"
+                       " where the time goes; training env steps/s", bench_episode_run)
+    add_config_args(bp)
+    bp.add_argument("--scenario", default="paper_b", help="scenario (default paper_b)")
+    bp.add_argument("--seed", type=int, default=3,
+                    help="seed of the first episode; the next ones count up (default 3)")
+    bp.add_argument("--cycles", type=int_at_least(1), default=600,
+                    help="control cycles per job, episodes cut at this cap (default 600)")
+    _add_episode_args(bp, crowd="reactive")
+    bp.add_argument("--model", type=Path, metavar="FILE.onnx",
+                    help="the SafeMove job's actor (default: a random 61-400-300-2 one)")
+    bp.add_argument("--workers", type=int_at_least(1),
+                    help="training envs of the second training figure, beside one (default:"
+                         " one per core)")
+    bp.add_argument("--learning-starts", type=int_at_least(1), default=200,
+                    help="random training steps before the timed updates (default 200)")
+    bp.add_argument("--updates", type=int_at_least(1), default=300,
+                    help="training steps with gradient updates (default 300)")
+    bp.add_argument("--no-train", dest="train", action="store_false",
+                    help="leave out the training env (it needs the train extra)")
+
+    bp = _bench_parser(bsub, "cycle", "the whole robot cycle on recorded depth, p50/p99/max;"
+                       " start-up to READY and RSS", bench_cycle_run)
+    bp.add_argument("--cycles", type=int_at_least(1), default=2000,
+                    help="timed control cycles (default 2000)")
+    bp.add_argument("--frames", type=int_at_least(1), default=300,
+                    help="frames recorded, played again and again (default 300)")
+    bp.add_argument("--model", type=Path, metavar="FILE.onnx",
+                    help="the actor (default: a random 61-400-300-2 one)")
+    bp.add_argument("--startup-runs", type=int_at_least(0), default=3,
+                    help="starts of `safemove run --planner safemove` (default 3; 0: none)")
+
 
 def bench_loop_run(args: argparse.Namespace) -> int:
     from sim_stub.bench import bench_loop
@@ -176,6 +220,27 @@ def bench_startup_run(args: argparse.Namespace) -> int:
     return print_figures(bench_startup(args.runs, args.planner, args.model), args.json)
 
 
+def bench_episode_run(args: argparse.Namespace) -> int:
+    import os
+
+    from sim_stub.bench_episode import bench_episode
+
+    if not 0 < args.fps <= 90:
+        raise UserError(f"bench episode: --fps must be in (0, 90], got {args.fps}")
+    workers = sorted({1, args.workers or os.cpu_count() or 1}) if args.train else []
+    return print_figures(bench_episode(args.scenario, args.seed, args.cycles, args.fps,
+                                       args.noise, args.crowd, args.model, args.config,
+                                       args.overrides, workers, args.learning_starts,
+                                       args.updates), args.json)
+
+
+def bench_cycle_run(args: argparse.Namespace) -> int:
+    from sim_stub.bench_cycle import bench_cycle
+
+    return print_figures(bench_cycle(args.cycles, args.frames, args.model, args.startup_runs),
+                         args.json)
+
+
 def add_export(p: argparse.ArgumentParser) -> None:
     from export.cli import add_arguments as add_export_arguments
 
@@ -195,13 +260,14 @@ def add_train(p: argparse.ArgumentParser) -> None:
     from sim_stub.train.cli import add_arguments as add_train_arguments
 
     add_train_arguments(p)
+    p.add_argument("--json", action="store_true", help="print only the JSON line")
     p.set_defaults(func=train_run)
 
 
 def train_run(args: argparse.Namespace) -> int:
     from sim_stub.train.cli import run_train
 
-    return print_figures(run_train(args), False)
+    return print_figures(run_train(args), args.json)
 
 
 def add_eval(p: argparse.ArgumentParser) -> None:
@@ -218,13 +284,7 @@ def add_eval(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the first episode (default 0)")
     p.add_argument("--jobs", type=int_at_least(1), default=1,
                    help="worker processes (default 1)")
-    p.add_argument("--fps", type=finite_float, default=15.0,
-                   help="depth frames per second (default 15)")
-    p.add_argument("--no-noise", dest="noise", action="store_false",
-                   help="render depth without the D435 noise model")
-    p.add_argument("--crowd", choices=("scenario", "reactive", "oblivious"), default="scenario",
-                   help="whether the agents see and avoid the robot (default: as the scenario"
-                        " says; the paper scenarios ship oblivious)")
+    _add_episode_args(p, crowd="scenario")
     p.add_argument("--json", action="store_true", help="print only the JSON result")
     p.set_defaults(func=eval_run)
 
@@ -232,6 +292,7 @@ def add_eval(p: argparse.ArgumentParser) -> None:
 def eval_run(args: argparse.Namespace) -> int:
     """Seeded episodes per scenario, lock-stepped through the runtime's pipeline code."""
     from sim_stub.evaluate import EvalSettings, evaluate, table
+    from sim_stub.progress import Progress
 
     if args.planner == "safemove" and args.model is None:
         raise UserError("eval --planner safemove: give --model FILE.onnx")
@@ -240,19 +301,26 @@ def eval_run(args: argparse.Namespace) -> int:
     settings = EvalSettings(args.planner, args.config, tuple(args.overrides), args.model,
                             args.fps, args.noise, args.crowd)
 
-    def progress(r: Any) -> None:
-        if not args.json:
+    counts: dict[str, int] = {}
+
+    def episode_ended(r: Any) -> None:
+        """Without a terminal (unless --json): a line per episode. With one: a bar with the
+        outcomes so far, the collisions' lines above it."""
+        counts[r.status] = counts.get(r.status, 0) + 1
+        if not args.json and (bar.plain or r.status == "collision"):
             fault = ""
             if r.status == "collision":
                 fault = (" (at fault)" if r.at_fault
                          else " (moving, not at fault)" if r.moving_at_contact else "")
                 if r.contact_bearing_deg is not None:
                     fault += f" with {r.collided_with} at {r.contact_bearing_deg:+.0f}°"
-            print(f"{r.scenario} seed {r.seed}: {r.status} at {r.time_s:.1f} s{fault},"
-                  f" {r.path_length_m:.2f} m, {r.shield_interventions} shield interventions",
-                  file=sys.stderr)
+            bar.line(f"{r.scenario} seed {r.seed}: {r.status} at {r.time_s:.1f} s{fault},"
+                     f" {r.path_length_m:.2f} m, {r.shield_interventions} shield interventions")
+        bar.advance(1, **counts)
 
-    result = evaluate(args.scenarios, args.episodes, args.seed, settings, args.jobs, progress)
+    with Progress(len(args.scenarios) * args.episodes, "eval", "episode") as bar:
+        result = evaluate(args.scenarios, args.episodes, args.seed, settings, args.jobs,
+                          episode_ended)
     if not args.json:
         print(table(result), file=sys.stderr)
     print_json(result)

@@ -3,12 +3,15 @@ world; deterministic from the seed; the paper's columns."""
 
 from __future__ import annotations
 
+import io
 import json
 import math
+import sys
 
 import pytest
 
 from sim_stub.evaluate import EpisodeResult, EvalSettings, run_episode, summarise
+from sim_stub.progress import Progress
 from sim_stub.world import base_to_world, goal_in_odom
 
 SETTINGS = EvalSettings("dwa", None, ("loop.stats_interval_s=0",), None, 10.0, False)
@@ -61,6 +64,32 @@ def test_goal_in_odom_frame():
     assert theta == pytest.approx(2.3)
 
 
+class _Terminal(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+def test_progress_is_a_bar_on_a_terminal_and_plain_lines_elsewhere(monkeypatch):
+    monkeypatch.setattr(sys, "stderr", _Terminal())
+    with Progress(4, "eval", "episode") as bar:
+        bar.advance(1, success=1)
+        bar.line("paper_a seed 1: collision")
+        bar.advance(1, success=1, collision=1)
+    shown = sys.stderr.getvalue()
+    assert "\r" in shown and "2/4" in shown and "success=1, collision=1" in shown
+    assert "<" in shown  # tqdm's elapsed<remaining: the ETA
+    assert "paper_a seed 1: collision\n" in shown
+
+    monkeypatch.setattr(sys, "stderr", io.StringIO())
+    with Progress(25, "train", "step", line_every=10) as plain:
+        for _ in range(9):
+            plain.advance(3)  # to 27: past the total, still one last line
+    lines = sys.stderr.getvalue().splitlines()
+    assert [ln.split(" steps")[0] for ln in lines] == ["train: 12/25", "train: 21/25",
+                                                      "train: 27/25"]
+    assert lines[-1].endswith("ETA 0 s") and plain.plain
+
+
 def test_summary_columns():
     def ep(status, t=10.0, path=2.0, fault=False, moving=False, shield=1):
         hit = status == "collision"
@@ -79,11 +108,14 @@ def test_summary_columns():
     assert summarise([ep("timeout")])["avg_speed_m_s"] is None
 
 
-def test_eval_cli_json_and_bad_scenario(short_room, safemove):
+def test_eval_cli_progress_lines_json_result_and_bad_scenario(short_room, safemove):
     run = safemove(["eval", "--scenarios", short_room, "--episodes", "1", "--fps", "10",
-                    "--no-noise", "--json"])
+                    "--no-noise"])
     assert run.wait(timeout=120) == 0, run.stderr[-2000:]
-    result = json.loads(run.stdout.strip().splitlines()[-1])
+    # stderr is no terminal: a plain line per episode, no bar; stdout: the JSON result alone
+    assert f"{short_room} seed 0: success at" in run.stderr and "\r" not in run.stderr
+    (line,) = run.stdout.strip().splitlines()
+    result = json.loads(line)
     s = result["scenarios"][short_room]
     assert s["episodes"] == 1 and s["success_rate"] == 1.0 and result["crowd"] == "scenario"
     bad = safemove(["eval", "--scenarios", "no_such_room"])

@@ -3,7 +3,10 @@ end (train → td3.zip → exported actor.onnx → `safemove eval` runs it)."""
 
 from __future__ import annotations
 
+import csv
 import json
+import zipfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -21,8 +24,9 @@ SPEC = PRESETS["safemove"]
 
 
 def _room(tmp_path, name: str, goal_x: float, crowd: str = "{count: 0}",
-          time_limit_s: float = 30.0) -> str:
-    """An empty 6 m room; the robot at the origin facing +x, the goal goal_x ahead."""
+          time_limit_s: float = 30.0, heading_jitter_deg: float = 0.0) -> str:
+    """An empty 6 m room; the robot at the origin facing +x (± the jitter, drawn from the
+    episode's seed), the goal goal_x ahead."""
     path = tmp_path / f"{name}.yaml"
     path.write_text(
         f"name: {name}\n"
@@ -33,10 +37,19 @@ def _room(tmp_path, name: str, goal_x: float, crowd: str = "{count: 0}",
         "robot:\n"
         "  area: {x_min: -0.01, x_max: 0.01, y_min: -0.01, y_max: 0.01}\n"
         "  heading_deg: 0.0\n"
+        f"  heading_jitter_deg: {heading_jitter_deg}\n"
         f"goals: [[{goal_x}, 0.0]]\n"
         f"crowd: {crowd}\n"
         "obstacles: []\n")
     return str(path)
+
+
+def _monitor(path: Path) -> list[tuple[str, str, str]]:
+    """The Monitor file's (return, length, outcome) per episode, its wall-clock column left
+    out; its first line is a JSON header."""
+    with path.open(encoding="utf-8") as f:
+        next(f)
+        return [(row["r"], row["l"], row["outcome"]) for row in csv.DictReader(f)]
 
 
 def _env(scenario: str, **kw) -> SafeMoveEnv:
@@ -101,7 +114,7 @@ def test_train_writes_a_model_and_an_actor_that_eval_runs(tmp_path, safemove):
     out = tmp_path / "run"
     run = safemove(["train", "-o", str(out), "--steps", "120", "--learning-starts", "60",
                     "--batch-size", "32", "--scenarios", room, "--checkpoint-every", "100",
-                    "--no-noise", "--net", "64", "64"])
+                    "--no-noise", "--net", "64", "64", "--envs", "1"])
     assert run.wait(timeout=300) == 0, run.stderr[-3000:]
     summary = json.loads(run.stdout.strip().splitlines()[-1])
     # the Monitor's episodes (summary) and its file (outcomes) agree, one row per episode
@@ -119,6 +132,31 @@ def test_train_writes_a_model_and_an_actor_that_eval_runs(tmp_path, safemove):
     again = safemove(["train", "-o", str(out), "--steps", "10", "--scenarios", room])
     assert again.wait(timeout=120) == 2
     assert "td3.zip: exists" in again.stderr and "Traceback" not in again.stderr
+
+
+@pytest.mark.timeout(600)  # two runs at once, two workers each: 45-70 s on 2 loaded cores
+def test_training_in_two_worker_envs_repeats_from_its_seed(tmp_path, safemove):
+    # 100 steps per env: two 2.5 s episodes (49 steps) each, their start headings drawn from
+    # the env's seed; learning starts at 100 transitions, so the second ones run the learnt
+    # actor (and the noise) and the monitor's returns depend on the gradient steps too
+    room = _room(tmp_path, "room", 1.5, time_limit_s=2.5, heading_jitter_deg=180.0)
+    runs = {name: safemove(["train", "-o", str(tmp_path / name), "--envs", "2", "--seed", "3",
+                            "--steps", "200", "--learning-starts", "100", "--batch-size", "32",
+                            "--net", "16", "16", "--scenarios", room, "--no-noise", "--json"])
+            for name in ("a", "b")}
+    results = {}
+    for name, run in runs.items():
+        assert run.wait(timeout=400) == 0, run.stderr[-3000:]
+        # --json: the JSON line alone on stdout; stderr is no terminal: plain progress lines
+        (line,) = run.stdout.strip().splitlines()
+        summary = json.loads(line)
+        assert (summary["envs"], summary["steps"], summary["episodes"]) == (2, 200, 4)
+        assert "train: 200/200 steps (100 %)" in run.stderr and "\r" not in run.stderr
+        with zipfile.ZipFile(tmp_path / name / "td3.zip") as model:
+            results[name] = (_monitor(tmp_path / name / "monitor.csv"), model.read("policy.pth"))
+    assert results["a"] == results["b"]  # episode by episode, and the weights byte for byte
+    episodes = results["a"][0]
+    assert len(episodes) == 4 and episodes[0][0] != episodes[1][0]  # env i seeded seed + i
 
 
 def test_train_refuses_an_unknown_scenario(tmp_path, safemove):

@@ -6,13 +6,24 @@ episode: return, length, wall time, outcome; SB3's Monitor format), `checkpoints
 exported and parity-checked by `safemove export`'s code). Importing this module does not import
 torch, gymnasium or stable-baselines3 (the robot image has none); running it does, and says how
 to install them when they are missing.
+
+The episodes run in --envs worker processes (`vec_env.make_vec_env`), one per core by default,
+so the simulation is shared out; the gradient steps stay in this process, between VecEnv steps.
+Each VecEnv step collects one transition per env and is followed by as many gradient steps
+(gradient_steps=-1): the update-to-data ratio stays one whatever N is, which also means that
+past --learning-starts the gradient steps bound the rate more than the simulation does. A run
+is reproducible from (--seed, --envs); the same seed with another N gives other episodes.
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
 import logging
+import math
+import os
 import time
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +31,7 @@ from runtime.cli.args import add_config_args, finite_float, int_at_least
 from runtime.config.settings import load_config
 from runtime.errors import UserError
 from runtime.policy.obs_spec import PRESETS, load_spec
+from sim_stub.progress import Progress
 from sim_stub.scenario import CROWD_MODES, load_scenario
 
 DEFAULT_SCENARIOS = ("paper_a", "paper_b", "paper_c", "paper_d")
@@ -38,7 +50,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="whether the people see the robot (default: as the scenario says)")
     p.add_argument("--steps", type=int_at_least(1), default=200_000,
                    help="environment steps (control cycles) to train (default 200000)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the episodes and of TD3")
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the episodes (env i: seed + i) and of TD3")
+    cores = len(os.sched_getaffinity(0))  # the cores this process may run on
+    p.add_argument("--envs", type=int_at_least(1), default=cores,
+                   help="environments, each in its own worker process (default: one per core,"
+                        f" {cores} here)")
     p.add_argument("--net", type=int_at_least(1), nargs="+", default=[400, 300],
                    help="hidden layer sizes of actor and critics (default 400 300)")
     p.add_argument("--learning-starts", type=int_at_least(0), default=5_000,
@@ -50,7 +67,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--action-noise", type=finite_float, default=0.1,
                    help="σ of the Gaussian exploration noise on the [-1, 1] actions (default 0.1)")
     p.add_argument("--checkpoint-every", type=int_at_least(1), default=20_000,
-                   help="save the model every this many steps (default 20000)")
+                   help="save the model about every this many steps, a multiple of --envs"
+                        " (default 20000)")
     p.add_argument("--fps", type=finite_float, default=15.0, help="rendered depth frames/s")
     p.add_argument("--no-noise", dest="noise", action="store_false",
                    help="render depth without sensor noise")
@@ -68,12 +86,10 @@ def run_train(args: argparse.Namespace) -> dict[str, Any]:
         raise UserError(f"safemove train needs the train extra ({exc.name} is missing):"
                         " pip install -e '.[train,export]'") from None
     import numpy as np
-    from stable_baselines3 import TD3
-    from stable_baselines3.common.callbacks import CheckpointCallback
-    from stable_baselines3.common.monitor import Monitor
-    from stable_baselines3.common.noise import NormalActionNoise
+    from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback
 
-    from sim_stub.train.env import SafeMoveEnv
+    from sim_stub.train.callbacks import ProgressCallback
+    from sim_stub.train.vec_env import make_vec_env
 
     spec = load_spec(args.spec)
     loaded = load_config(args.config, args.overrides)
@@ -91,29 +107,46 @@ def run_train(args: argparse.Namespace) -> dict[str, Any]:
     logging.getLogger("safemove").setLevel(logging.WARNING)  # per-cycle shield logs
     torch.set_num_threads(args.threads)
 
-    env = Monitor(SafeMoveEnv(args.scenarios, spec, loaded, fps=args.fps, noise=args.noise,
-                              crowd=args.crowd),
-                  str(out / "monitor.csv"), info_keywords=("outcome",))
-    env.reset(seed=args.seed)
-    model = TD3("MlpPolicy", env, learning_rate=args.learning_rate,
-                learning_starts=args.learning_starts, batch_size=args.batch_size,
-                action_noise=NormalActionNoise(np.zeros(2), np.full(2, args.action_noise)),
-                policy_kwargs={"net_arch": list(args.net)}, seed=args.seed, device="cpu",
-                verbose=0)
+    n = args.envs
+    env = make_vec_env(args.scenarios, spec, loaded, n, args.seed, fps=args.fps,
+                       noise=args.noise, crowd=args.crowd, monitor_path=out / "monitor.csv")
+    model = make_td3(env, args)
+    # SB3 stops at the first whole VecEnv step at or past --steps
+    steps = math.ceil(args.steps / n) * n
+    checkpoints = CheckpointCallback(max(args.checkpoint_every // n, 1),
+                                     str(out / "checkpoints"), name_prefix="td3")
     t0 = time.monotonic()
-    model.learn(total_timesteps=args.steps, callback=CheckpointCallback(
-        args.checkpoint_every, str(out / "checkpoints"), name_prefix="td3"))
+    with Progress(steps, "train", "step", line_every=max(steps // 10, 1)) as progress:
+        model.learn(total_timesteps=args.steps,
+                    callback=CallbackList([checkpoints, ProgressCallback(progress)]))
     wall = time.monotonic() - t0
+    env.close()  # on an error, the workers (daemons) end with this process
     model.save(final)
-    returns = env.get_episode_rewards()  # in episode order
+    episodes = _episodes(out / "monitor.csv")
+    returns = [float(row["r"]) for row in episodes]
     export = _export(final, out / "spec.json", out / "actor.onnx")
-    return {"run": str(out), "steps": args.steps, "wall_s": round(wall, 1),
-            "steps_per_s": round(args.steps / wall, 1), "episodes": len(returns),
-            "outcomes": _outcome_counts(out / "monitor.csv"),
+    return {"run": str(out), "steps": model.num_timesteps, "envs": n, "wall_s": round(wall, 1),
+            "steps_per_s": round(model.num_timesteps / wall, 1), "episodes": len(episodes),
+            "outcomes": dict(Counter(row["outcome"] for row in episodes)),
             "mean_return_last_50": (round(float(np.mean(returns[-50:])), 2)
                                     if returns else None),
             "model": str(final), "actor": str(out / "actor.onnx"),
             "export_parity_max_abs": export["provenance"]["parity_max_abs"]}
+
+
+def make_td3(env: Any, args: argparse.Namespace) -> Any:
+    """TD3 as `safemove train` runs it on `env` (a VecEnv): one gradient step per transition
+    collected (gradient_steps=-1), whatever the number of envs."""
+    import numpy as np
+    from stable_baselines3 import TD3
+    from stable_baselines3.common.noise import NormalActionNoise
+
+    return TD3("MlpPolicy", env, learning_rate=args.learning_rate,
+               learning_starts=args.learning_starts, batch_size=args.batch_size,
+               gradient_steps=-1,
+               action_noise=NormalActionNoise(np.zeros(2), np.full(2, args.action_noise)),
+               policy_kwargs={"net_arch": list(args.net)}, seed=args.seed, device="cpu",
+               verbose=0)
 
 
 def _export(model: Path, spec_path: Path, onnx_path: Path) -> dict[str, Any]:
@@ -128,11 +161,9 @@ def _export(model: Path, spec_path: Path, onnx_path: Path) -> dict[str, Any]:
     return export_actor(actor, model, onnx_path, recorded, source)
 
 
-def _outcome_counts(monitor_csv: Path) -> dict[str, int]:
-    """Episodes per outcome from the Monitor file (its first line is a JSON header)."""
-    counts: dict[str, int] = {}
-    lines = monitor_csv.read_text(encoding="utf-8").splitlines()[2:]
-    for line in lines:
-        outcome = line.rsplit(",", 1)[-1]
-        counts[outcome] = counts.get(outcome, 0) + 1
-    return counts
+def _episodes(monitor_csv: Path) -> list[dict[str, str]]:
+    """The Monitor file's rows (r, l, t, outcome), in the order the episodes ended; its first
+    line is a JSON header."""
+    with monitor_csv.open(encoding="utf-8", newline="") as f:
+        next(f)
+        return list(csv.DictReader(f))
