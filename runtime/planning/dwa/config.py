@@ -20,7 +20,10 @@ class DWAConfig:
     n_omega: int = setting(20, "coarse grid: angular velocity samples", min=1, max=200)
     refine_n: int = setting(5, "refinement: n×n samples around the best per round (odd)",
                             min=3, max=15)
-    refine_max_rounds: int = setting(8, "refinement: most rounds per call", min=0, max=50)
+    refine_max_rounds: int = setting(
+        3, "refinement: most rounds per call (round r samples at 2^-(r+1) of the coarse"
+        " spacing; the shipped window after 3 rounds is finer than the base's 1 mm/s wheel"
+        " command)", min=0, max=50)
     weight_heading: float = setting(1.0, "α: weight of the heading term", min=0.0)
     weight_clearance: float = setting(1.0, "β: weight of the clearance term", min=0.0)
     weight_velocity: float = setting(2.0, "γ: weight of the velocity term", min=0.0)

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import math
 
-import cv2
 import numpy as np
 
 from runtime.geometry import wrap_angles
@@ -30,7 +29,6 @@ class Evaluator:
         self.goal = np.asarray(goal, dtype=np.float64)
         self.times = prep.times.astype(np.float32)
         steps = prep.steps
-        self.ones = np.ones(steps, np.float32)
         pos = np.asarray(obs_pos, dtype=np.float64).reshape(-1, steps, 2)
         reach_r = np.asarray(obs_radius, dtype=np.float64).reshape(-1, steps) + prep.r_eff
         far = prep.box_distance(pos)
@@ -97,10 +95,14 @@ class Evaluator:
                 d, dy = d_buf[: b - a], dy_buf[: b - a]
                 np.subtract(x, self.ox[a:b], out=d)
                 np.subtract(y, self.oy[a:b], out=dy)
-                flat = d.reshape(-1, k_n)
-                cv2.magnitude(flat, dy.reshape(-1, k_n), flat)
+                # plain IEEE operations: cv2.magnitude's result depends on the buffer's
+                # alignment, and a replay must reproduce every decision bit for bit
+                np.multiply(d, d, out=d)
+                np.multiply(dy, dy, out=dy)
+                d += dy
+                np.sqrt(d, out=d)
                 np.min(d, axis=1, out=closest[a:b])
-                np.matmul(self.ones, d, out=dist_sum[a:b])  # sum over steps (BLAS)
+                np.sum(d, axis=1, out=dist_sum[a:b])
                 if a < n_t:
                     d -= self.reach_r[a:b]
                     np.minimum(gap, d.min(axis=0), out=gap)

@@ -80,23 +80,32 @@ def plan(
     v_lo, v_hi, w_lo, w_hi = prep.window
     dv, dw = grid_spacing(cfg, prep.window)
     grid = _refine_offsets(cfg.refine_n)
+    found_samples, found = [samples], [raw]
+    evaluated = len(samples)
+    best_sample = samples[best] if best >= 0 else None
+    best_total = float(total[best]) if best >= 0 else -math.inf
     # a round has no more samples than a coarse block: the slowest block bounds the first round
-    while best >= 0 and rounds < cfg.refine_max_rounds and (dv > 0 or dw > 0):
+    while best_sample is not None and rounds < cfg.refine_max_rounds and (dv > 0 or dw > 0):
         if not clock.allows(slowest):
             break
-        scale = 0.5**rounds
-        new = samples[best] + grid * np.array([dv * scale, dw * scale])
+        new = best_sample + grid * np.array([dv, dw]) * 0.5**rounds
         new[:, 0] = np.clip(new[:, 0], v_lo, v_hi)
         new[:, 1] = np.clip(new[:, 1], w_lo, w_hi)
         r = ev.evaluate(new)
-        samples = np.concatenate([samples, new])
-        raw = {k: np.concatenate([raw[k], r[k]]) for k in raw}
-        _, total = score_terms(cfg, lim, raw)
-        best = best_admissible(total, raw["admissible"])
+        # the terms are per sample: scoring a round alone equals scoring it with all before it
+        _, round_total = score_terms(cfg, lim, r)
+        i = best_admissible(round_total, r["admissible"])
+        if i >= 0 and round_total[i] > best_total:  # ties keep the earlier sample
+            best, best_sample, best_total = evaluated + i, new[i], float(round_total[i])
+        found_samples.append(new)
+        found.append(r)
+        evaluated += len(new)
         rounds += 1
         lap = clock.lap()
         slowest = lap if rounds == 1 else max(slowest, lap)
-    evaluated = len(samples)
+    if rounds:
+        samples = np.concatenate(found_samples)
+        raw = {k: np.concatenate([f[k] for f in found]) for k in raw}
     if best < 0:  # nothing admissible: brake
         brake = np.array([braking_sample(prep.window)])
         r = ev.evaluate(brake)

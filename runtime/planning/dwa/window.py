@@ -7,8 +7,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
+from scipy import ndimage
 
 from runtime.planning.dwa.config import DWAConfig
 from runtime.safety.limits import LimitsConfig
@@ -144,10 +144,11 @@ def _distance_grid(points: np.ndarray, lo: np.ndarray, shape: tuple[int, int], c
     ij = ij[inside]
     if not len(ij):
         return None
-    occ = np.full(shape, 255, np.uint8)
-    occ[ij[:, 0], ij[:, 1]] = 0  # index [ix, iy]
-    # float32 already (no copy): asarray only gives the type checker the dtype cv2's stub lacks
-    edt = np.asarray(cv2.distanceTransform(occ, cv2.DIST_L2, cv2.DIST_MASK_PRECISE), np.float32)
+    free = np.ones(shape, bool)
+    free[ij[:, 0], ij[:, 1]] = False  # index [ix, iy]
+    # scipy's exact transform, not cv2.distanceTransform: cv2's result depends on its buffers'
+    # alignment, and a replay must reproduce every decision bit for bit
+    edt = ndimage.distance_transform_edt(free).astype(np.float32)
     edt *= cell
     edt -= cell * math.sqrt(2.0)
     return edt
