@@ -206,6 +206,14 @@ def test_shipped_set_and_paper_counts() -> None:
             assert math.hypot(*g) == pytest.approx(7.0, abs=0.1)
 
 
+def test_calibrated_set_keeps_the_paper_counts_and_an_oblivious_crowd() -> None:
+    for k, count in zip("abcd", (8, 12, 16, 20)):
+        cal, dense = load_scenario(f"paper_cal_{k}"), load_scenario(f"paper_{k}")
+        assert cal.crowd.count == count and not cal.crowd.reactive
+        assert cal.crowd.speed_range == (0.5, 1.0)
+        assert (cal.goals, cal.obstacles, cal.robot) == (dense.goals, dense.obstacles, dense.robot)
+
+
 def test_unknown_shipped_name_is_one_line() -> None:
     with pytest.raises(ConfigError) as err:
         load_scenario("paper_z")
