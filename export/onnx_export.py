@@ -36,6 +36,7 @@ import torch
 
 from export.checkpoint import LoadedActor
 from export.output import check_output, int8_path, write_atomically
+from export.ship import set_metadata
 from runtime.errors import UserError
 from runtime.policy.actor import (
     INPUT_NAME,
@@ -100,16 +101,6 @@ def to_onnx(actor: LoadedActor) -> onnx.ModelProto:
     set_metadata(model, {META_SPEC: actor.spec.to_json()})
     model.producer_name = "safemove export"
     return model
-
-
-def set_metadata(model: onnx.ModelProto, entries: dict[str, str]) -> None:
-    for key, value in entries.items():
-        for prop in model.metadata_props:
-            if prop.key == key:
-                prop.value = value
-                break
-        else:
-            model.metadata_props.add(key=key, value=value)
 
 
 def torch_outputs(module: torch.nn.Module, obs: np.ndarray) -> np.ndarray:

@@ -5,15 +5,24 @@ uses simulated observations). `safemove` imports this module only to run one of 
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from runtime.cli.args import add_config_args, finite_float, int_at_least
+from runtime.cli.args import (
+    add_config_args,
+    add_policy_args,
+    finite_float,
+    int_at_least,
+    policy_model,
+)
 from runtime.cli.output import finish, print_figures, print_json
 from runtime.config.settings import load_config
 from runtime.errors import UserError
+
+DEMO_GRACE_S = 10.0  # the demo runs this long past its scenario's time limit at most
 
 
 def add_demo(p: argparse.ArgumentParser) -> None:
@@ -23,22 +32,29 @@ def add_demo(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=4, help="episode seed (default 4)")
     p.add_argument("--crowd", choices=("scenario", "reactive", "oblivious"), default="reactive",
                    help="whether the people see the robot (default reactive)")
+    p.add_argument("--planner", choices=("safemove", "dwa"), default="safemove",
+                   help="safemove (default): the TD3 actor, by default the shipped safemove"
+                        " policy; dwa: the DWA baseline (both through the shield)")
+    add_policy_args(p)
     p.set_defaults(func=demo)
 
 
 def demo(args: argparse.Namespace) -> int:
     """The main job: the runtime drives the simulated robot (world, depth, base) to the
-    scenario's goal with the DWA planner, every command through the shield. No trained policy
-    ships yet; `run --planner safemove --model` runs one."""
+    scenario's goal with the shipped SafeMove policy (or --model, --variant, --planner dwa),
+    every command through the shield."""
     import time
 
     from runtime.cli.app import run_job
     from runtime.jobs.dwa import DWAJob
+    from runtime.jobs.safemove import safemove_job
     from sim_stub.emulator_process import EmulatorProcess
     from sim_stub.scenario import load_scenario
     from sim_stub.world import goal_in_odom
 
-    load_scenario(args.scenario)  # a bad name or file fails here with its one line, not in the sim
+    # a bad scenario or a missing model fails here with its one line, before the sim starts
+    scenario = load_scenario(args.scenario)
+    model = policy_model(args, "demo", "give --model FILE.onnx, or --planner dwa")
     sim_args = [args.scenario, "--seed", str(args.seed), "--crowd", args.crowd]
     with EmulatorProcess(sim_args, module="sim_stub.sim_server") as sim:
         event = next(e for e in sim.history if e.get("event") == "scenario")
@@ -47,13 +63,19 @@ def demo(args: argparse.Namespace) -> int:
             *args.overrides, f"base.port={sim.link}", "depth.source=sim",
             f"depth.sim_socket={sim.depth_socket}",
         ])
-        job = DWAJob(goal, loaded.config, time.monotonic)
-        report, link_stats = run_job(loaded, job)
+        job: Any = (DWAJob(goal, loaded.config, time.monotonic) if model is None
+                    else safemove_job(model, goal, loaded.config, time.monotonic))
+        # the world's verdict comes at its time limit at the latest; a policy that never
+        # reaches the goal must not keep the demo running after it
+        limit_s = scenario.time_limit_s + DEMO_GRACE_S
+        report, link_stats = run_job(loaded, job,
+                                     math.ceil(limit_s * loaded.config.loop.control_hz))
         world = sim.request("world", "world")
         truth = sim.truth()
     o = report.odometry
+    planner = "DWA planner" if model is None else f"SafeMove actor {model}"
     print(
-        f"DWA planner in scenario {args.scenario} (seed {args.seed}, {args.crowd} crowd) to the"
+        f"{planner} in scenario {args.scenario} (seed {args.seed}, {args.crowd} crowd) to the"
         f" goal {goal[0]:+.2f}, {goal[1]:+.2f} m (odom): reached={job.reached}; world says:"
         f" {world['status']}; odometry ({o.x:+.3f}, {o.y:+.3f}) m vs base truth"
         f" ({truth['x']:+.3f}, {truth['y']:+.3f}) m; {report.cycles} cycles,"
@@ -63,7 +85,7 @@ def demo(args: argparse.Namespace) -> int:
     )
     return finish({**report.as_dict(), "job": job.summary(), "link": link_stats, "truth": truth,
                     "world": {k: world[k] for k in ("status", "robot_pose", "min_separation")}},
-                   report.exit_code)
+                   report.exit_code or (0 if world["status"] == "success" else 1))
 
 
 def add_soak(p: argparse.ArgumentParser) -> None:
@@ -270,12 +292,29 @@ def train_run(args: argparse.Namespace) -> int:
     return print_figures(run_train(args), args.json)
 
 
+def add_ship(p: argparse.ArgumentParser) -> None:
+    p.add_argument("run", type=Path, help="a `safemove train` run directory")
+    p.add_argument("--eval", type=Path, nargs="+", required=True, metavar="RESULT.json",
+                   dest="evaluations",
+                   help="`safemove eval --planner safemove --model RUN/actor.onnx --json` results"
+                        " to carry in the model's metadata")
+    p.set_defaults(func=ship_run)
+
+
+def ship_run(args: argparse.Namespace) -> int:
+    from sim_stub.train.ship import ship
+
+    target = ship(args.run, args.evaluations)
+    print(f"shipped {args.run / 'actor.onnx'} as {target}")
+    return 0
+
+
 def add_eval(p: argparse.ArgumentParser) -> None:
     add_config_args(p)
     p.add_argument("--planner", choices=("dwa", "safemove"), default="dwa",
-                   help="dwa: the DWA baseline; safemove: the TD3 actor --model (both through"
-                        " the shield)")
-    p.add_argument("--model", type=Path, metavar="FILE.onnx", help="the actor for safemove")
+                   help="dwa: the DWA baseline; safemove: the TD3 actor, --model or a shipped"
+                        " --variant (both through the shield)")
+    add_policy_args(p)
     p.add_argument("--scenarios", nargs="+", default=["paper_a", "paper_b", "paper_c", "paper_d"],
                    metavar="NAME", help="shipped scenario names or YAML files (default: the"
                                         " paper's a-d)")
@@ -294,11 +333,10 @@ def eval_run(args: argparse.Namespace) -> int:
     from sim_stub.evaluate import EvalSettings, evaluate, table
     from sim_stub.progress import Progress
 
-    if args.planner == "safemove" and args.model is None:
-        raise UserError("eval --planner safemove: give --model FILE.onnx")
+    model = policy_model(args, "eval")
     if not 0 < args.fps <= 90:
         raise UserError(f"eval: --fps must be in (0, 90], got {args.fps}")
-    settings = EvalSettings(args.planner, args.config, tuple(args.overrides), args.model,
+    settings = EvalSettings(args.planner, args.config, tuple(args.overrides), model,
                             args.fps, args.noise, args.crowd)
 
     counts: dict[str, int] = {}
@@ -318,7 +356,10 @@ def eval_run(args: argparse.Namespace) -> int:
                      f" {r.path_length_m:.2f} m, {r.shield_interventions} shield interventions")
         bar.advance(1, **counts)
 
-    with Progress(len(args.scenarios) * args.episodes, "eval", "episode") as bar:
+    total = len(args.scenarios) * args.episodes
+    # --json keeps stdout to the result; without a terminal, stderr still gets status lines
+    with Progress(total, "eval", "episode",
+                  line_every=max(total // 20, 1) if args.json else None) as bar:
         result = evaluate(args.scenarios, args.episodes, args.seed, settings, args.jobs,
                           episode_ended)
     if not args.json:

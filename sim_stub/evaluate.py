@@ -27,6 +27,7 @@ import numpy as np
 
 from runtime.config.settings import LoadedConfig, load_config
 from runtime.pipeline import Pipeline
+from runtime.policy.shipped import variant_of
 from sim_stub.lockstep import LockstepEpisode
 from sim_stub.scenario import load_scenario
 
@@ -40,7 +41,7 @@ class EvalSettings:
     planner: str
     config_path: Path | None
     overrides: tuple[str, ...]
-    model: Path | None
+    model: Path | None  # the actor for safemove (the command line resolves --variant to its file)
     fps: float
     noise: bool
     crowd: str = "scenario"  # scenario | reactive | oblivious: whether agents see the robot
@@ -74,6 +75,8 @@ def make_job(settings: EvalSettings, goal_odom: tuple[float, float], loaded: Loa
         return DWAJob(goal_odom, loaded.config, None)
     from runtime.jobs.safemove import safemove_job
 
+    if settings.model is None:
+        raise ValueError("EvalSettings: the safemove planner needs a model")
     return safemove_job(settings.model, goal_odom, loaded.config, None)
 
 
@@ -157,8 +160,11 @@ def evaluate(scenarios: list[str], episodes: int, seed: int, settings: EvalSetti
                 if progress is not None:
                     progress(done.result())
             results = [f.result() for f in futures]
+    model = settings.model if settings.planner == "safemove" else None
     return {
         "planner": settings.planner,
+        "model": None if model is None else str(model),
+        "variant": None if model is None else variant_of(model),
         "fps": settings.fps,
         "noise": settings.noise,
         "crowd": settings.crowd,

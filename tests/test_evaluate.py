@@ -9,6 +9,7 @@ import math
 import sys
 
 import pytest
+from rooms import write_room
 
 from sim_stub.evaluate import EpisodeResult, EvalSettings, run_episode, summarise
 from sim_stub.progress import Progress
@@ -22,22 +23,10 @@ def short_room(tmp_path):
     """A room with a box across the straight line from the start to a goal 2.5 m ahead (its
     near edge 0.1 m to the side of it), nobody else. (Dead centre, it is the textbook DWA
     trap: every sample that turns away scores worse on heading than creeping toward it.)"""
-    path = tmp_path / "short_room.yaml"
-    path.write_text(
-        "name: short_room\n"
-        "description: one box to go around\n"
-        "seed: 3\n"
-        "time_limit_s: 40.0\n"
-        "area: {x_min: -3.0, x_max: 3.0, y_min: -3.0, y_max: 3.0}\n"
-        "robot:\n"
-        "  area: {x_min: -1.3, x_max: -1.2, y_min: -0.05, y_max: 0.05}\n"
-        "  heading_deg: 0.0\n"
-        "goals: [[1.25, 0.0]]\n"
-        "crowd: {count: 0}\n"
-        "obstacles:\n"
-        "  - {type: box, center: [0.0, 0.3], size: [0.3, 0.4], yaw_deg: 0.0, height: 0.8}\n"
-    )
-    return str(path)
+    return write_room(tmp_path, "short_room", goal=(1.25, 0.0), time_limit_s=40.0,
+                      start=(-1.3, -1.2, -0.05, 0.05),
+                      obstacles="\n  - {type: box, center: [0.0, 0.3], size: [0.3, 0.4],"
+                                " yaw_deg: 0.0, height: 0.8}")
 
 
 def test_dwa_reaches_the_goal_around_a_box_and_episodes_repeat_exactly(short_room):

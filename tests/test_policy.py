@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -106,12 +107,11 @@ def test_run_refuses_a_model_whose_spec_mismatches_with_exit_2(tmp_path, safemov
     assert "Traceback" not in run.stderr and run.stdout == ""  # refused before the base opened
 
 
-def test_run_safemove_needs_a_model_and_model_needs_safemove(capsys):
+def test_model_needs_safemove(capsys):
+    """(Without --model, the shipped policy: tests/test_shipped_policy.py.)"""
     from runtime.cli.main import main
 
     common = ["--goal", "1", "0", "--set", "depth.source=sim", "--set", "depth.sim_socket=/x"]
-    assert main(["run", "--planner", "safemove", *common]) == 2
-    assert "give --model FILE.onnx" in capsys.readouterr().err
     assert main(["run", "--planner", "dwa", "--model", "a.onnx", *common]) == 2
     assert "--model is for --planner safemove" in capsys.readouterr().err
 
@@ -133,9 +133,9 @@ class FixedPolicy:
 
     def __init__(self, output) -> None:
         self.spec = SPEC
-        self.path = "fixed.onnx"
+        self.path = Path("fixed.onnx")
         self.threads = 1
-        self.provenance = {}
+        self.provenance = self.training = self.evaluation = {}
         self.output = np.asarray(output, dtype=np.float32)
         self.seen: list[np.ndarray] = []
 

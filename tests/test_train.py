@@ -15,6 +15,7 @@ pytest.importorskip("gymnasium")
 pytest.importorskip("stable_baselines3")
 
 from gymnasium.utils.env_checker import check_env
+from rooms import write_room
 
 from runtime.config.settings import load_config
 from runtime.policy.obs_spec import PRESETS
@@ -25,23 +26,10 @@ SPEC = PRESETS["safemove"]
 
 def _room(tmp_path, name: str, goal_x: float, crowd: str = "{count: 0}",
           time_limit_s: float = 30.0, heading_jitter_deg: float = 0.0) -> str:
-    """An empty 6 m room; the robot at the origin facing +x (± the jitter, drawn from the
-    episode's seed), the goal goal_x ahead."""
-    path = tmp_path / f"{name}.yaml"
-    path.write_text(
-        f"name: {name}\n"
-        "description: an empty room\n"
-        "seed: 1\n"
-        f"time_limit_s: {time_limit_s}\n"
-        "area: {x_min: -3.0, x_max: 3.0, y_min: -3.0, y_max: 3.0}\n"
-        "robot:\n"
-        "  area: {x_min: -0.01, x_max: 0.01, y_min: -0.01, y_max: 0.01}\n"
-        "  heading_deg: 0.0\n"
-        f"  heading_jitter_deg: {heading_jitter_deg}\n"
-        f"goals: [[{goal_x}, 0.0]]\n"
-        f"crowd: {crowd}\n"
-        "obstacles: []\n")
-    return str(path)
+    """The robot at the origin facing +x (± the jitter, drawn from the episode's seed), the
+    goal goal_x ahead."""
+    return write_room(tmp_path, name, goal=(goal_x, 0.0), time_limit_s=time_limit_s,
+                      heading_jitter_deg=heading_jitter_deg, crowd=crowd)
 
 
 def _monitor(path: Path) -> list[tuple[str, str, str]]:
@@ -114,7 +102,7 @@ def test_train_writes_a_model_and_an_actor_that_eval_runs(tmp_path, safemove):
     out = tmp_path / "run"
     run = safemove(["train", "-o", str(out), "--steps", "120", "--learning-starts", "60",
                     "--batch-size", "32", "--scenarios", room, "--checkpoint-every", "100",
-                    "--no-noise", "--net", "64", "64", "--envs", "1"])
+                    "--no-noise", "--net", "64", "64", "--envs", "1", "--recipe", "td3"])
     assert run.wait(timeout=300) == 0, run.stderr[-3000:]
     summary = json.loads(run.stdout.strip().splitlines()[-1])
     # the Monitor's episodes (summary) and its file (outcomes) agree, one row per episode
@@ -142,7 +130,8 @@ def test_training_in_two_worker_envs_repeats_from_its_seed(tmp_path, safemove):
     room = _room(tmp_path, "room", 1.5, time_limit_s=2.5, heading_jitter_deg=180.0)
     runs = {name: safemove(["train", "-o", str(tmp_path / name), "--envs", "2", "--seed", "3",
                             "--steps", "200", "--learning-starts", "100", "--batch-size", "32",
-                            "--net", "16", "16", "--scenarios", room, "--no-noise", "--json"])
+                            "--net", "16", "16", "--scenarios", room, "--no-noise", "--json",
+                            "--recipe", "td3"])
             for name in ("a", "b")}
     results = {}
     for name, run in runs.items():
@@ -157,6 +146,27 @@ def test_training_in_two_worker_envs_repeats_from_its_seed(tmp_path, safemove):
     assert results["a"] == results["b"]  # episode by episode, and the weights byte for byte
     episodes = results["a"][0]
     assert len(episodes) == 4 and episodes[0][0] != episodes[1][0]  # env i seeded seed + i
+
+
+@pytest.mark.timeout(600)
+def test_the_bc_td3_recipe_clones_dwa_before_td3(tmp_path, safemove):
+    # a goal 1.5 m ahead in an empty room: DWA reaches it in about 6 s, so the noise-free
+    # demonstrations are whole successful episodes, and the clone learns DWA's choices
+    room = _room(tmp_path, "room", 1.5, time_limit_s=12.0)
+    out = tmp_path / "run"
+    run = safemove(["train", "-o", str(out), "--envs", "1", "--scenarios", room, "--no-noise",
+                    "--net", "64", "64", "--batch-size", "32", "--demo-steps", "300",
+                    "--demo-noise", "0", "--bc-epochs", "40", "--critic-warmup", "20",
+                    "--steps", "20", "--json"])
+    assert run.wait(timeout=500) == 0, run.stderr[-3000:]
+    summary = json.loads(run.stdout.strip().splitlines()[-1])
+    assert summary["recipe"] == "bc-td3" and summary["demo_steps"] == 300
+    assert summary["demo_episodes"] >= 2 and summary["demo_successes"] == summary["demo_episodes"]
+    assert summary["bc_mse"] < 0.02  # an untrained actor is off by ~0.3 (action units)
+    assert summary["critic_warmup_loss"] is not None
+    assert summary["total_env_steps"] == 320
+    for name in ("checkpoints/bc.zip", "learning_curve.png", "actor.onnx"):
+        assert (out / name).is_file(), name
 
 
 def test_train_refuses_an_unknown_scenario(tmp_path, safemove):

@@ -1,5 +1,6 @@
-"""argparse pieces every `safemove` command line shares: the config options and number types
-that refuse NaN, inf and nonsense with a one-line message."""
+"""argparse pieces every `safemove` command line shares: the config options, the actor for
+--planner safemove, and number types that refuse NaN, inf and nonsense with a one-line
+message."""
 
 from __future__ import annotations
 
@@ -8,12 +9,40 @@ import math
 from collections.abc import Callable
 from pathlib import Path
 
+from runtime.errors import UserError
+from runtime.policy.shipped import DEFAULT_VARIANT, VARIANTS, shipped_model
+
 
 def add_config_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", type=Path, default=None,
                    help="config file (default: the shipped runtime/config/default_config.yaml)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override one config key, e.g. --set base.port=/dev/ttyUSB0 (repeatable)")
+
+
+def add_policy_args(p: argparse.ArgumentParser) -> None:
+    """--model or --variant (one of them): the actor for --planner safemove."""
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--model", type=Path, metavar="FILE.onnx",
+                   help="the actor for --planner safemove, written by `safemove export`")
+    g.add_argument("--variant", choices=VARIANTS,
+                   help="the actor for --planner safemove that ships with this installation"
+                        f" (default, without --model: {DEFAULT_VARIANT})")
+
+
+def policy_model(args: argparse.Namespace, command: str,
+                 instead: str = "give --model FILE.onnx") -> Path | None:
+    """The actor file args.planner needs: --model, the shipped --variant or the shipped default
+    for safemove, None for any other planner (which refuses both). Resolved before anything
+    starts, so a missing file is one line; `instead` ends that line (shipped_model)."""
+    if args.planner != "safemove":
+        for flag, value in (("--model", args.model), ("--variant", args.variant)):
+            if value is not None:
+                raise UserError(f"{command}: {flag} is for --planner safemove, not {args.planner}")
+        return None
+    if args.model is not None:
+        return args.model
+    return shipped_model(args.variant or DEFAULT_VARIANT, instead)
 
 
 def finite_float(text: str) -> float:

@@ -7,7 +7,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from runtime.cli.args import add_config_args, finite_float
+from runtime.cli.args import add_config_args, add_policy_args, finite_float, policy_model
 from runtime.cli.output import finish
 from runtime.config.settings import load_config, render_calibration, render_config
 from runtime.errors import UserError
@@ -18,17 +18,17 @@ def add_run(p: argparse.ArgumentParser) -> None:
     p.add_argument("--planner", choices=("hold", "dwa", "safemove"), default="hold",
                    help="hold: keep the base stopped with everything else live; dwa: the DWA"
                         " baseline to --goal, through the shield; safemove: the TD3 actor"
-                        " --model to --goal, through the shield")
+                        " (--model or a shipped --variant) to --goal, through the shield")
     p.add_argument("--goal", nargs=2, type=finite_float, metavar=("X", "Y"),
                    help="goal in the odom frame (m): the robot starts at the origin facing +x")
-    p.add_argument("--model", type=Path, metavar="FILE.onnx",
-                   help="the actor for --planner safemove, written by `safemove export`")
+    add_policy_args(p)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """The service's job: `hold` keeps the base stopped; `dwa` drives to --goal with the DWA
-    baseline through the shield; `safemove` with the TD3 actor --model, through the shield."""
+    baseline through the shield; `safemove` with the TD3 actor (--model, a shipped --variant,
+    by default the shipped safemove one), through the shield."""
     import time
 
     from runtime.cli.app import run_job
@@ -36,8 +36,7 @@ def run(args: argparse.Namespace) -> int:
     from runtime.jobs.dwa import DWAJob
 
     loaded = load_config(args.config, args.overrides)
-    if args.model is not None and args.planner != "safemove":
-        raise UserError(f"run: --model is for --planner safemove, not {args.planner}")
+    model = policy_model(args, "run")
     if args.planner == "hold":
         job: Any = HoldJob()
     else:
@@ -47,10 +46,10 @@ def run(args: argparse.Namespace) -> int:
         if loaded.config.depth.source == "none":
             raise UserError(f"{loaded.config_path}: key 'depth.source': the {args.planner}"
                             " planner needs depth (d435 or sim), got 'none'")
-        if args.planner == "safemove":
+        if model is not None:
             from runtime.jobs.safemove import safemove_job
 
-            job = safemove_job(args.model, tuple(args.goal), loaded.config, time.monotonic)
+            job = safemove_job(model, tuple(args.goal), loaded.config, time.monotonic)
         else:
             job = DWAJob(tuple(args.goal), loaded.config, time.monotonic)
     report, link_stats = run_job(loaded, job)

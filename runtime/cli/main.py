@@ -25,8 +25,8 @@ COMMANDS: dict[str, tuple[str, bool, str]] = {
     "drive": ("runtime.cli.commands:add_drive", False,
                "teleoperate the base: a fixed twist or a scripted list"),
     "demo": ("sim_stub.commands:add_demo", False,
-              ("the runtime driving the simulated robot to a goal (DWA planner through the"
-               " shield)")),
+              ("the runtime driving the simulated robot to a goal (the shipped SafeMove policy"
+               " through the shield)")),
     "soak": ("sim_stub.commands:add_soak", False,
               ("a long real-time run of `safemove run` against `safemove sim`: contacts,"
                " interventions, misses, RSS slope, log rate")),
@@ -39,6 +39,9 @@ COMMANDS: dict[str, tuple[str, bool, str]] = {
     "train": ("sim_stub.commands:add_train", False,
                ("TD3 (stable-baselines3) on the lock-stepped simulated robot, shield in the"
                 " loop; exports the actor")),
+    "ship": ("sim_stub.commands:add_ship", False,
+              ("install a trained run's actor as its variant's shipped policy, with its training"
+               " and evaluation records")),
     "eval": ("sim_stub.commands:add_eval", False,
               "seeded episodes per scenario, lock-stepped, scored as in the paper's table"),
     "sim": ("sim_stub.commands:add_sim", True,

@@ -1,4 +1,5 @@
-"""The SafeMove planner mode (`safemove run --planner safemove --model actor.onnx`).
+"""The SafeMove planner mode (`safemove run --planner safemove`, with --model actor.onnx or a
+shipped --variant).
 
 Each RUNNING cycle: DWA and the track predictions as the DWA mode does them (PlanningStep),
 the safe corridor along DWA's best path when the model's spec has a corridor block, the
@@ -20,12 +21,13 @@ from typing import Any
 import numpy as np
 
 from runtime.config.settings import Config
-from runtime.errors import ConfigError, UserError
+from runtime.errors import ConfigError
 from runtime.perception.world_model import WorldState
 from runtime.planning.corridor import CorridorConfig, safe_corridor
 from runtime.planning.planning_step import PlanningContext, PlanningStep
 from runtime.policy.actor import Policy
 from runtime.policy.obs_spec import ObservationBuilder, ObsSpec
+from runtime.policy.shipped import variant_of
 from runtime.types import STOP, Odometry, Prepared, Twist
 
 log = logging.getLogger("safemove.policy")
@@ -143,21 +145,22 @@ class SafeMoveJob:
             **self._planning.summary(),
             "policy": None if policy is None else {
                 "model": str(policy.path),
+                "variant": variant_of(policy.path),
                 "spec": self._spec.name,
                 "features": self._spec.size,
                 "threads": policy.threads,
                 "provenance": policy.provenance,
+                "training": policy.training,
+                "evaluation": policy.evaluation,
             },
             "nonfinite_safe_stops": dict(self.nonfinite),
         }
 
 
-def safemove_job(model: Path | None, goal_odom: tuple[float, float], config: Config,
+def safemove_job(model: Path, goal_odom: tuple[float, float], config: Config,
                  clock: Callable[[], float] | None) -> SafeMoveJob:
-    """The job for `safemove run --planner safemove`: the model is loaded, validated and warmed
-    up here, before the base is opened, so a bad model refuses to start (exit 2). `clock`: as
-    for PlanningStep (None: budgets by count, for the lock-stepped evaluation)."""
-    if model is None:
-        raise UserError("run --planner safemove: give --model FILE.onnx (written by"
-                        " `safemove export`)")
+    """The job for `safemove run --planner safemove`: the model (--model, or the shipped file
+    the command line resolved) is loaded, validated and warmed up here, before the base is
+    opened, so a bad model refuses to start (exit 2). `clock`: as for PlanningStep (None:
+    budgets by count, for the lock-stepped evaluation)."""
     return SafeMoveJob(goal_odom, config, Policy(model, config.policy), clock)

@@ -1,1 +1,1 @@
-"""The observation contract (ObsSpec) and the ONNX actor."""
+"""The observation contract (ObsSpec), the ONNX actor and the actors shipped with the package."""

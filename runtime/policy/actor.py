@@ -31,6 +31,9 @@ INPUT_NAME = "obs"
 OUTPUT_NAME = "action"
 META_SPEC = "safemove.obs_spec"
 META_PROVENANCE = "safemove.provenance"
+# how a shipped actor was trained and how it scored (`export.ship.stamp`): reported, not used
+META_TRAINING = "safemove.training"
+META_EVALUATION = "safemove.evaluation"
 
 
 @dataclass(frozen=True)
@@ -97,10 +100,9 @@ class Policy:
             raise ConfigError(f"{where}: not a loadable ONNX model: {first}") from None
         meta = self._session.get_modelmeta().custom_metadata_map
         self.spec = self._check_io_and_spec(where, meta)
-        try:
-            self.provenance: dict[str, Any] = json.loads(meta.get(META_PROVENANCE, "{}"))
-        except json.JSONDecodeError:
-            self.provenance = {}
+        self.provenance = _json_object(meta, META_PROVENANCE)
+        self.training = _json_object(meta, META_TRAINING)
+        self.evaluation = _json_object(meta, META_EVALUATION)
         self._input = np.zeros((1, self.spec.size), dtype=np.float32)
         self._feed = {INPUT_NAME: self._input}
         self._outputs = [OUTPUT_NAME]
@@ -152,6 +154,16 @@ class Policy:
     @property
     def threads(self) -> int:
         return int(self._session.get_session_options().intra_op_num_threads)
+
+
+def _json_object(meta: dict[str, str], key: str) -> dict[str, Any]:
+    """A JSON object from the metadata, {} when absent or unreadable: these entries only
+    describe the model, so they never stop it from running."""
+    try:
+        value = json.loads(meta.get(key, "{}"))
+    except json.JSONDecodeError:
+        return {}
+    return value if isinstance(value, dict) else {}
 
 
 def _batch_ok(dim: Any) -> bool:

@@ -1,9 +1,10 @@
 """`safemove train -o RUN_DIR`: TD3 (stable-baselines3) on the lock-stepped robot, then export.
 
 Writes into RUN_DIR: `spec.json` (the observation spec trained on), `monitor.csv` (one row per
-episode: return, length, wall time, outcome; SB3's Monitor format), `checkpoints/` (every
---checkpoint-every steps), `td3.zip` (the final model) and `actor.onnx` (the final actor,
-exported and parity-checked by `safemove export`'s code). Importing this module does not import
+episode: return, length, wall time, outcome; SB3's Monitor format), `learning_curve.png`
+(success rate and return against env steps), `checkpoints/` (every --checkpoint-every steps,
+and `bc.zip` after the bc-td3 recipe's cloning and critic warm-up), `td3.zip` (the final model)
+and `actor.onnx` (the final actor, exported and parity-checked by `safemove export`'s code). Importing this module does not import
 torch, gymnasium or stable-baselines3 (the robot image has none); running it does, and says how
 to install them when they are missing.
 
@@ -19,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 import logging
 import math
 import os
@@ -33,8 +35,11 @@ from runtime.errors import UserError
 from runtime.policy.obs_spec import PRESETS, load_spec
 from sim_stub.progress import Progress
 from sim_stub.scenario import CROWD_MODES, load_scenario
+from sim_stub.train.reward import KINDS, RewardConfig
 
 DEFAULT_SCENARIOS = ("paper_a", "paper_b", "paper_c", "paper_d")
+RECIPES = ("bc-td3", "td3")
+REPLAYS = ("uniform", "rmax")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -46,8 +51,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         " (default safemove)")
     p.add_argument("--scenarios", nargs="+", default=list(DEFAULT_SCENARIOS),
                    help="scenarios episodes are drawn from (default: the four paper ones)")
-    p.add_argument("--crowd", choices=CROWD_MODES, default="scenario",
-                   help="whether the people see the robot (default: as the scenario says)")
+    p.add_argument("--crowd", choices=(*CROWD_MODES, "mixed"), default="scenario",
+                   help="whether the people see the robot (default: as the scenario says;"
+                        " mixed: each episode draws reactive or oblivious)")
     p.add_argument("--steps", type=int_at_least(1), default=200_000,
                    help="environment steps (control cycles) to train (default 200000)")
     p.add_argument("--seed", type=int, default=0,
@@ -74,6 +80,25 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="render depth without sensor noise")
     p.add_argument("--threads", type=int_at_least(1), default=1,
                    help="torch threads for the gradient steps (default 1)")
+    p.add_argument("--reward", choices=KINDS, default="project",
+                   help="project: progress, time, success, collision and shield terms; paper:"
+                        " the paper's R_g + R_b + R_yaw (sim_stub/train/reward.py; default"
+                        " project)")
+    p.add_argument("--replay", choices=REPLAYS, default="uniform",
+                   help="uniform: SB3's replay buffer; rmax: the paper's reward-ranked replay,"
+                        " half of each batch from the top-rewarded tenth (default uniform)")
+    p.add_argument("--recipe", choices=RECIPES, default="bc-td3",
+                   help="bc-td3 (the shipped recipe): DWA demonstrations, behaviour cloning and a"
+                        " critic warm-up before TD3 (sim_stub/train/recipe.py); td3: TD3 from"
+                        " random actions (default bc-td3)")
+    p.add_argument("--demo-steps", type=int_at_least(1), default=40_000,
+                   help="bc-td3: transitions driven by DWA's choice plus noise (default 40000)")
+    p.add_argument("--demo-noise", type=finite_float, default=0.2,
+                   help="bc-td3: σ of the noise on DWA's choice, action units (default 0.2)")
+    p.add_argument("--bc-epochs", type=int_at_least(0), default=30,
+                   help="bc-td3: behaviour-cloning passes over the demonstrations (default 30)")
+    p.add_argument("--critic-warmup", type=int_at_least(0), default=5_000,
+                   help="bc-td3: critic-only gradient steps before TD3 (default 5000)")
 
 
 def run_train(args: argparse.Namespace) -> dict[str, Any]:
@@ -89,6 +114,7 @@ def run_train(args: argparse.Namespace) -> dict[str, Any]:
     from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback
 
     from sim_stub.train.callbacks import ProgressCallback
+    from sim_stub.train.curves import plot_curves
     from sim_stub.train.vec_env import make_vec_env
 
     spec = load_spec(args.spec)
@@ -109,13 +135,15 @@ def run_train(args: argparse.Namespace) -> dict[str, Any]:
 
     n = args.envs
     env = make_vec_env(args.scenarios, spec, loaded, n, args.seed, fps=args.fps,
-                       noise=args.noise, crowd=args.crowd, monitor_path=out / "monitor.csv")
+                       noise=args.noise, crowd=args.crowd, reward=RewardConfig(kind=args.reward),
+                       monitor_path=out / "monitor.csv")
     model = make_td3(env, args)
+    t0 = time.monotonic()
+    start = _start(model, args, out) if args.recipe == "bc-td3" else {}
     # SB3 stops at the first whole VecEnv step at or past --steps
     steps = math.ceil(args.steps / n) * n
     checkpoints = CheckpointCallback(max(args.checkpoint_every // n, 1),
                                      str(out / "checkpoints"), name_prefix="td3")
-    t0 = time.monotonic()
     with Progress(steps, "train", "step", line_every=max(steps // 10, 1)) as progress:
         model.learn(total_timesteps=args.steps,
                     callback=CallbackList([checkpoints, ProgressCallback(progress)]))
@@ -125,13 +153,62 @@ def run_train(args: argparse.Namespace) -> dict[str, Any]:
     episodes = _episodes(out / "monitor.csv")
     returns = [float(row["r"]) for row in episodes]
     export = _export(final, out / "spec.json", out / "actor.onnx")
-    return {"run": str(out), "steps": model.num_timesteps, "envs": n, "wall_s": round(wall, 1),
-            "steps_per_s": round(model.num_timesteps / wall, 1), "episodes": len(episodes),
+    plot_curves({spec.name: out / "monitor.csv"}, out / "learning_curve.png")
+    total = model.num_timesteps + start.get("demo_steps", 0)
+    summary = {"run": str(out), "recipe": args.recipe, **start, "steps": model.num_timesteps,
+            "total_env_steps": total, "envs": n, "wall_s": round(wall, 1),
+            "steps_per_s": round(total / wall, 1), "episodes": len(episodes),
             "outcomes": dict(Counter(row["outcome"] for row in episodes)),
             "mean_return_last_50": (round(float(np.mean(returns[-50:])), 2)
                                     if returns else None),
             "model": str(final), "actor": str(out / "actor.onnx"),
             "export_parity_max_abs": export["provenance"]["parity_max_abs"]}
+    # how the run was made, beside what it made: the record a shipped policy carries
+    settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()
+                if k != "func"}
+    (out / "summary.json").write_text(
+        json.dumps({**summary, "settings": settings, "commit": source_commit()}, indent=1),
+        encoding="utf-8")
+    return summary
+
+
+def source_commit() -> str | None:
+    """The git commit this code was run from ("+dirty" with uncommitted changes), or None
+    outside a git checkout (an installed package)."""
+    import subprocess
+
+    root = Path(__file__).resolve().parents[2]
+    try:
+        head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True,
+                              text=True, check=True, timeout=10).stdout.strip()
+        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain",
+                                "--untracked-files=no"], capture_output=True, text=True,
+                               check=True, timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return head + ("+dirty" if dirty else "")
+
+
+def _start(model: Any, args: argparse.Namespace, out: Path) -> dict[str, Any]:
+    """The bc-td3 recipe's phases before TD3 (sim_stub/train/recipe.py); the cloned,
+    warmed-up model is saved as checkpoints/bc.zip (a candidate like any checkpoint)."""
+    from sim_stub.train.recipe import clone_behaviour, collect_demonstrations, warm_up_critics
+
+    t0 = time.monotonic()
+    demos = collect_demonstrations(model, args.demo_steps, args.demo_noise, args.seed)
+    t1 = time.monotonic()
+    bc_mse = clone_behaviour(model, demos, args.bc_epochs, args.batch_size, args.learning_rate,
+                             args.seed)
+    t2 = time.monotonic()
+    critic_loss = warm_up_critics(model, args.critic_warmup)
+    t3 = time.monotonic()
+    model.save(out / "checkpoints" / "bc.zip")
+    model.learning_starts = 0  # the buffer holds the demonstrations
+    return {"demo_steps": len(demos.observations), "demo_episodes": demos.episodes,
+            "demo_successes": demos.successes, "bc_mse": round(bc_mse, 5),
+            "critic_warmup_loss": None if critic_loss is None else round(critic_loss, 4),
+            "phase_wall_s": {"demonstrations": round(t1 - t0, 1), "cloning": round(t2 - t1, 1),
+                             "critic_warmup": round(t3 - t2, 1)}}
 
 
 def make_td3(env: Any, args: argparse.Namespace) -> Any:
@@ -141,7 +218,10 @@ def make_td3(env: Any, args: argparse.Namespace) -> Any:
     from stable_baselines3 import TD3
     from stable_baselines3.common.noise import NormalActionNoise
 
-    return TD3("MlpPolicy", env, learning_rate=args.learning_rate,
+    from sim_stub.train.replay import RewardRankedReplayBuffer
+
+    replay = RewardRankedReplayBuffer if args.replay == "rmax" else None
+    return TD3("MlpPolicy", env, learning_rate=args.learning_rate, replay_buffer_class=replay,
                learning_starts=args.learning_starts, batch_size=args.batch_size,
                gradient_steps=-1,
                action_noise=NormalActionNoise(np.zeros(2), np.full(2, args.action_noise)),

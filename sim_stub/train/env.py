@@ -22,31 +22,20 @@ the shield passes.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import gymnasium as gym
 import numpy as np
 
-from runtime.config.schema import setting
 from runtime.config.settings import LoadedConfig
 from runtime.jobs.safemove import SafeMoveJob
 from runtime.pipeline import Pipeline, Sensed
 from runtime.policy.obs_spec import ObsSpec
 from sim_stub.lockstep import LockstepEpisode
+from sim_stub.train.reward import RewardConfig, corridor_yaw_error, step_reward
 from sim_stub.world import World
 
 F32 = np.float32
-
-
-@dataclass(frozen=True)
-class RewardConfig:
-    progress_per_m: float = setting(10.0, "reward per metre of true progress toward the goal")
-    time_per_s: float = setting(0.1, "cost per second of simulated time", min=0.0)
-    success: float = setting(10.0, "bonus on reaching the goal (the world's verdict)")
-    collision: float = setting(10.0, "penalty on any contact (the world's verdict)", min=0.0)
-    shield_change: float = setting(
-        0.05, "penalty for each cycle the shield changed the actor's command", min=0.0)
 
 
 class SafeMoveEnv(gym.Env):
@@ -57,6 +46,8 @@ class SafeMoveEnv(gym.Env):
     def __init__(self, scenarios: list[str], spec: ObsSpec, loaded: LoadedConfig,
                  reward: RewardConfig | None = None, fps: float = 15.0, noise: bool = True,
                  crowd: str = "scenario") -> None:
+        """crowd: as the scenario says, reactive, oblivious, or "mixed" (each episode draws
+        reactive or oblivious)."""
         if not scenarios:
             raise ValueError("SafeMoveEnv needs at least one scenario")
         self.scenarios = list(scenarios)
@@ -82,8 +73,11 @@ class SafeMoveEnv(gym.Env):
         rng = self.np_random
         scenario = self.scenarios[int(rng.integers(len(self.scenarios)))]
         episode_seed = int(rng.integers(2**31 - 1))
+        crowd = self.crowd
+        if crowd == "mixed":  # domain randomisation: people who see the robot, or do not
+            crowd = ("reactive", "oblivious")[int(rng.integers(2))]
         self._episode = LockstepEpisode(scenario, episode_seed, self.loaded.config,
-                                        self.loaded.calibration, self.fps, self.noise, self.crowd)
+                                        self.loaded.calibration, self.fps, self.noise, crowd)
         self._job = SafeMoveJob(self._episode.goal_odom, self.loaded.config, None, None,
                                 spec=self.obs_spec)
         self._pipeline = Pipeline(self._episode.config, self.loaded.calibration, self._job)
@@ -105,18 +99,15 @@ class SafeMoveEnv(gym.Env):
         self._episode.send(out.command)
         t_before = self._t
         obs, outcome = self._advance()
-        cfg = self.reward_config
         distance = self._true_distance()
-        reward = (cfg.progress_per_m * (self._distance - distance)
-                  - cfg.time_per_s * (self._t - t_before)
-                  - (cfg.shield_change if changed else 0.0))
+        prepared = None if self._sensed is None else self._sensed.prepared
+        yaw = 0.0 if prepared is None else corridor_yaw_error(prepared.context.dwa.best_path)
+        reward = step_reward(self.reward_config, progress_m=self._distance - distance,
+                             dt_s=self._t - t_before, outcome=outcome, shield_changed=changed,
+                             yaw_error_rad=yaw)
         self._distance = distance
         terminated = outcome in ("success", "collision")
         truncated = not terminated and obs is None
-        if outcome == "success":
-            reward += cfg.success
-        elif outcome == "collision":
-            reward -= cfg.collision
         if obs is None:  # SB3 keeps the last observation of an ended episode: give one
             obs = np.zeros(self.observation_space.shape, dtype=F32)
         world = self._episode.world
@@ -147,6 +138,19 @@ class SafeMoveEnv(gym.Env):
             episode.send(pipeline.finish(sensed).command)
         self._t = episode.world.outcome.t
         return None, episode.world.outcome.status
+
+    def expert_action(self) -> np.ndarray:
+        """The DWA baseline's choice for the current observation (its best sample) as an action
+        of the spec's box: the demonstrations and behaviour cloning of the training recipe.
+        The DWA stage runs every planning cycle whatever the spec, so this exists for `drl`
+        too; a reversing DWA sample clips to the box's standstill."""
+        if self._sensed is None or self._sensed.prepared is None:
+            raise RuntimeError("expert_action() without a current observation")
+        v, omega = self._sensed.prepared.context.dwa.best
+        a = self.obs_spec.action
+        unit = np.array(a.normalise(float(v), float(omega)))  # [-1, 1]²
+        lo, hi = np.array(a.output_low), np.array(a.output_high)
+        return (lo + (unit + 1.0) * 0.5 * (hi - lo)).astype(F32)
 
     def _true_distance(self) -> float:
         assert self._episode is not None

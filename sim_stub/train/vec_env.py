@@ -26,6 +26,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv,
 from runtime.config.settings import LoadedConfig
 from runtime.policy.obs_spec import ObsSpec
 from sim_stub.train.env import SafeMoveEnv
+from sim_stub.train.reward import RewardConfig
 
 START_METHOD = "forkserver"
 PRELOAD = ["__main__", "stable_baselines3.common.vec_env.subproc_vec_env", __name__]
@@ -33,14 +34,15 @@ PRELOAD = ["__main__", "stable_baselines3.common.vec_env.subproc_vec_env", __nam
 
 def make_vec_env(scenarios: list[str], spec: ObsSpec, loaded: LoadedConfig, n_envs: int,
                  seed: int, *, fps: float, noise: bool, crowd: str,
-                 monitor_path: Path | None = None) -> VecEnv:
+                 reward: RewardConfig | None = None, monitor_path: Path | None = None
+                 ) -> VecEnv:
     """`n_envs` envs in worker processes (one: in this process, nothing to overlap), env i
     seeded from seed + i, under a VecMonitor that writes one row per episode (return, length,
     wall time, outcome) to `monitor_path` when given. Close it to end the workers."""
     if n_envs < 1:
         raise ValueError(f"make_vec_env: n_envs must be at least 1, got {n_envs}")
     # built in the worker from plain, picklable arguments
-    factory = functools.partial(SafeMoveEnv, list(scenarios), spec, loaded, fps=fps,
+    factory = functools.partial(SafeMoveEnv, list(scenarios), spec, loaded, reward, fps=fps,
                                 noise=noise, crowd=crowd)
     if n_envs == 1:
         venv: VecEnv = DummyVecEnv([factory])

@@ -1,0 +1,78 @@
+"""`safemove ship RUN_DIR --eval RESULT.json …`: a trained run's actor becomes the shipped policy of
+its variant (`runtime/policy/models/<spec name>.onnx`), carrying how it was trained (the run's
+summary.json: commit, seed, steps, wall time, the recipe's settings) and how it scored (the
+`safemove eval --json` results given, one per table: per scenario, the crowd, the episodes and
+the rates) in its metadata (`export.ship.stamp`).
+
+The variant is the run's spec: a run trained on a spec that is not one of the presets cannot
+ship as one. The copy is written beside the target and renamed over it, so an interrupted ship
+leaves the previous model whole.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+from typing import Any
+
+from runtime.errors import UserError
+from runtime.policy import shipped
+
+EVAL_KEYS = ("success_rate", "collision_rate", "timeout_rate", "at_fault_collisions",
+             "moving_collisions", "avg_path_length_m", "avg_speed_m_s",
+             "shield_interventions_per_episode")
+
+
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise UserError(f"{path}: file not found") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise UserError(f"{path}: not a readable JSON file: {exc}") from None
+
+
+def evaluation_record(result: dict[str, Any], source: Path) -> dict[str, Any]:
+    """The figures of one `safemove eval --json` result worth carrying in the model."""
+    try:
+        scenarios = {Path(name).stem: {"episodes": r["episodes"],
+                                       **{k: r[k] for k in EVAL_KEYS}}
+                     for name, r in result["scenarios"].items()}
+        return {"planner": result["planner"], "crowd": result["crowd"], "noise": result["noise"],
+                "fps": result["fps"], "scenarios": scenarios}
+    except (KeyError, TypeError, AttributeError) as exc:
+        raise UserError(f"{source}: not a `safemove eval --json` result (missing {exc})") from None
+
+
+def ship(run_dir: Path, evaluations: list[Path]) -> Path:
+    """Install the run's actor as its variant's shipped policy; returns the installed file."""
+    from export.ship import stamp
+
+    summary = _read_json(run_dir / "summary.json")
+    spec = _read_json(run_dir / "spec.json")
+    variant = spec.get("name") if isinstance(spec, dict) else None
+    if variant not in shipped.VARIANTS:
+        raise UserError(f"{run_dir / 'spec.json'}: spec '{variant}' is not a shipped variant"
+                        f" ({', '.join(shipped.VARIANTS)})")
+    actor = run_dir / "actor.onnx"
+    if not actor.is_file():
+        raise UserError(f"{actor}: no exported actor in the run directory")
+    records = []
+    for path in evaluations:
+        result = _read_json(path)
+        if not isinstance(result, dict) or result.get("planner") != "safemove":
+            raise UserError(f"{path}: not a `safemove eval --planner safemove --json` result")
+        model = result.get("model")
+        if not isinstance(model, str) or Path(model).resolve() != actor.resolve():
+            raise UserError(f"{path}: evaluates {model}, not this run's {actor}")
+        records.append(evaluation_record(result, path))
+    target = shipped.MODELS_DIR / f"{variant}.onnx"
+    target.parent.mkdir(parents=True, exist_ok=True)
+    partial = target.with_suffix(".onnx.partial")
+    shutil.copyfile(actor, partial)
+    stamp(partial, {k: summary[k] for k in summary if k not in ("run", "model", "actor")},
+          {"tables": records})
+    os.replace(partial, target)
+    return target
