@@ -1,7 +1,8 @@
-"""HIL: the real `safemove run --planner safemove` process with an exported, RANDOMLY INITIALISED
-actor (untrained: it proposes arbitrary commands) driving `safemove sim` in scenario (b) for 60 s.
-What is tested is the shield: whatever the actor says, the robot must not drive into anything
-the camera can see.
+"""HIL: the real `safemove run --planner safemove` process driving `safemove sim` in scenario (b)
+for 60 s, once with an exported, RANDOMLY INITIALISED actor (untrained: it proposes arbitrary
+commands) and once with the shipped SafeMove policy. What is tested with the random actor is the
+shield: whatever the actor says, the robot must not drive into anything the camera can see; the
+shipped policy must also have no contact the sim puts at the robot's fault.
 
 Real time is not deterministic (when each frame and command lands depends on the machine's
 load), so instead of a deterministic setup the test judges only what the shield can be
@@ -142,8 +143,11 @@ def random_actor(tmp_path: Path) -> Path:
 
 
 @pytest.mark.timeout(600)  # ~90 s idle (export, start-up, 60 s of real time, shut-down)
-def test_random_actor_drives_60_s_in_scenario_b_without_driving_into_what_it_sees(tmp_path):
-    model = random_actor(tmp_path)
+@pytest.mark.parametrize("actor", ["random", "shipped"])
+def test_actor_drives_60_s_in_scenario_b_without_driving_into_what_it_sees(tmp_path, actor):
+    """A random actor tests the shield alone; the shipped SafeMove policy (no --model: the
+    service's default) must also have no contact the sim blames on the robot at all."""
+    model = ["--model", str(random_actor(tmp_path))] if actor == "random" else []
     scenario = tmp_path / "paper_b_long.yaml"
     text = (SCENARIOS / "paper_b.yaml").read_text()
     scenario.write_text(text.replace("time_limit_s: 60.0", "time_limit_s: 600.0"))
@@ -152,7 +156,7 @@ def test_random_actor_drives_60_s_in_scenario_b_without_driving_into_what_it_see
                          module="sim_stub.sim_server") as sim:
         event = next(e for e in sim.history if e.get("event") == "scenario")
         gx, gy = odom_goal(event)
-        args = ["run", "--planner", "safemove", "--model", str(model), "--goal", f"{gx}",
+        args = ["run", "--planner", "safemove", *model, "--goal", f"{gx}",
                 f"{gy}", "--set", f"base.port={sim.link}", "--set", "depth.source=sim",
                 "--set", f"depth.sim_socket={sim.depth_socket}",
                 "--set", "loop.stats_interval_s=0"]
@@ -200,12 +204,16 @@ def test_random_actor_drives_60_s_in_scenario_b_without_driving_into_what_it_see
                "moving_contacts": [c for c in touched if c["moving"]],
                "sim_at_fault": sum(c["at_fault"] for c in touched), "shields": len(its_fault),
                "min_gap_m": round(world["min_separation"], 3), "reached": job["reached"]}
-    print("HIL safemove (randomly initialised actor):", json.dumps(summary))
-    assert job["policy"]["provenance"]["note"] == "randomly initialised (untrained)"
+    print(f"HIL safemove ({actor} actor):", json.dumps(summary))
     assert job["nonfinite_safe_stops"] == {}
     assert report["state"] == "STOPPED"
     assert running_s >= RUN_S or job["reached"], summary
     assert report["odometry"]["distance"] > 0.5, summary  # the actor did drive
-    assert sum(job["shield_interventions"].values()) > 0, summary  # the shield had work
     assert "Traceback" not in stderr, stderr[-3000:]
     assert not its_fault, {**summary, "contacts": touched}
+    if actor == "random":
+        assert job["policy"]["provenance"]["note"] == "randomly initialised (untrained)"
+        assert sum(job["shield_interventions"].values()) > 0, summary  # the shield had work
+    else:
+        assert job["policy"]["variant"] == "safemove" and job["policy"]["training"]
+        assert summary["sim_at_fault"] == 0, {**summary, "contacts": touched}

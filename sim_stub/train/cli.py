@@ -153,7 +153,8 @@ def run_train(args: argparse.Namespace) -> dict[str, Any]:
     episodes = _episodes(out / "monitor.csv")
     returns = [float(row["r"]) for row in episodes]
     export = _export(final, out / "spec.json", out / "actor.onnx")
-    plot_curves({spec.name: out / "monitor.csv"}, out / "learning_curve.png")
+    plot_curves({spec.name: out / "monitor.csv"}, out / "learning_curve.png",
+                td3_from=start.get("demo_steps"))
     total = model.num_timesteps + start.get("demo_steps", 0)
     summary = {"run": str(out), "recipe": args.recipe, **start, "steps": model.num_timesteps,
             "total_env_steps": total, "envs": n, "wall_s": round(wall, 1),

@@ -39,8 +39,10 @@ def read_curve(monitor_csv: Path, window: int) -> Curve:
                  np.convolve(returns, kernel, "valid"))
 
 
-def plot_curves(runs: dict[str, Path], out_png: Path, window: int = 50) -> None:
-    """One figure, success rate above return, a line per run (label → its monitor.csv)."""
+def plot_curves(runs: dict[str, Path], out_png: Path, window: int = 50,
+                td3_from: int | None = None) -> None:
+    """One figure, success rate above return, a line per run (label → its monitor.csv);
+    `td3_from`: the env steps at which TD3 took over from the demonstrations (a dashed line)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -57,6 +59,10 @@ def plot_curves(runs: dict[str, Path], out_png: Path, window: int = 50) -> None:
     ax_r.set_xlabel("environment steps (control cycles)")
     for ax in (ax_s, ax_r):
         ax.grid(alpha=0.3)
+        if td3_from:
+            ax.axvline(td3_from, color="grey", linestyle="--", linewidth=1)
+    if td3_from:
+        ax_s.text(td3_from, 2, " TD3 from here; DWA demonstrations before", fontsize=8)
     ax_s.legend(loc="lower right")
     fig.tight_layout()
     fig.savefig(out_png, dpi=100)
