@@ -167,6 +167,9 @@ def test_the_bc_td3_recipe_clones_dwa_before_td3(tmp_path, safemove):
     assert summary["total_env_steps"] == 320
     for name in ("checkpoints/bc.zip", "learning_curve.png", "actor.onnx"):
         assert (out / name).is_file(), name
+    record = json.loads((out / "summary.json").read_text())  # what a shipped model carries
+    assert record["settings"]["demo_steps"] == 300 and record["settings"]["seed"] == 0
+    assert "commit" in record and record["total_env_steps"] == 320
 
 
 def test_train_refuses_an_unknown_scenario(tmp_path, safemove):

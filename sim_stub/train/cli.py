@@ -133,6 +133,7 @@ def run_train(args: argparse.Namespace) -> dict[str, Any]:
     logging.getLogger("safemove").setLevel(logging.WARNING)  # per-cycle shield logs
     torch.set_num_threads(args.threads)
 
+    commit = source_commit()  # the code that runs: taken before the hours of training
     n = args.envs
     env = make_vec_env(args.scenarios, spec, loaded, n, args.seed, fps=args.fps,
                        noise=args.noise, crowd=args.crowd, reward=RewardConfig(kind=args.reward),
@@ -168,7 +169,7 @@ def run_train(args: argparse.Namespace) -> dict[str, Any]:
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()
                 if k != "func"}
     (out / "summary.json").write_text(
-        json.dumps({**summary, "settings": settings, "commit": source_commit()}, indent=1),
+        json.dumps({**summary, "settings": settings, "commit": commit}, indent=1),
         encoding="utf-8")
     return summary
 
