@@ -201,3 +201,16 @@ def test_ship_refuses_a_foreign_spec_or_evaluation(models, tmp_path, capsys, spe
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and needle in err[0]
     assert shipped.shipped_variants() == []
+
+
+def test_a_ship_that_fails_leaves_nothing_in_the_package(models, tmp_path, capsys):
+    run = _run_dir(tmp_path, "safemove")
+    (run / "actor.onnx").write_bytes(b"not a model")
+    result = tmp_path / "eval.json"
+    result.write_text(json.dumps({"planner": "safemove", "model": str(run / "actor.onnx"),
+                                  "crowd": "scenario", "noise": True, "fps": 15.0,
+                                  "scenarios": {}}))
+    assert main(["ship", str(run), "--eval", str(result)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "not an ONNX model" in err[0]
+    assert list(models.iterdir()) == []

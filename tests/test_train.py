@@ -172,6 +172,12 @@ def test_the_bc_td3_recipe_clones_dwa_before_td3(tmp_path, safemove):
     assert "commit" in record and record["total_env_steps"] == 320
 
 
+def test_train_refuses_a_negative_noise_in_one_line(tmp_path, safemove):
+    run = safemove(["train", "-o", str(tmp_path / "run"), "--demo-noise", "-0.1"])
+    assert run.wait(timeout=120) == 2
+    assert "--demo-noise" in run.stderr and "Traceback" not in run.stderr
+
+
 def test_train_refuses_an_unknown_scenario(tmp_path, safemove):
     run = safemove(["train", "-o", str(tmp_path / "run"), "--scenarios", "no_such_room"])
     assert run.wait(timeout=120) == 2

@@ -3,10 +3,11 @@
 Writes into RUN_DIR: `spec.json` (the observation spec trained on), `monitor.csv` (one row per
 episode: return, length, wall time, outcome; SB3's Monitor format), `learning_curve.png`
 (success rate and return against env steps), `checkpoints/` (every --checkpoint-every steps,
-and `bc.zip` after the bc-td3 recipe's cloning and critic warm-up), `td3.zip` (the final model)
-and `actor.onnx` (the final actor, exported and parity-checked by `safemove export`'s code). Importing this module does not import
-torch, gymnasium or stable-baselines3 (the robot image has none); running it does, and says how
-to install them when they are missing.
+and `bc.zip` after the bc-td3 recipe's cloning and critic warm-up), `td3.zip` (the final model),
+`actor.onnx` (the final actor, exported and parity-checked by `safemove export`'s code) and
+`summary.json` (the figures, every setting and the commit). Importing this module does not
+import torch, gymnasium or stable-baselines3 (the robot image has none); running it does, and
+says how to install them when they are missing.
 
 The episodes run in --envs worker processes (`vec_env.make_vec_env`), one per core by default,
 so the simulation is shared out; the gradient steps stay in this process, between VecEnv steps.
@@ -29,7 +30,7 @@ from collections import Counter
 from pathlib import Path
 from typing import Any
 
-from runtime.cli.args import add_config_args, finite_float, int_at_least
+from runtime.cli.args import add_config_args, finite_float, int_at_least, non_negative_float
 from runtime.config.settings import load_config
 from runtime.errors import UserError
 from runtime.policy.obs_spec import PRESETS, load_spec
@@ -70,7 +71,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="minibatch size (default 256)")
     p.add_argument("--learning-rate", type=finite_float, default=3e-4,
                    help="Adam learning rate (default 3e-4)")
-    p.add_argument("--action-noise", type=finite_float, default=0.1,
+    p.add_argument("--action-noise", type=non_negative_float, default=0.1,
                    help="σ of the Gaussian exploration noise on the [-1, 1] actions (default 0.1)")
     p.add_argument("--checkpoint-every", type=int_at_least(1), default=20_000,
                    help="save the model about every this many steps, a multiple of --envs"
@@ -93,7 +94,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         " random actions (default bc-td3)")
     p.add_argument("--demo-steps", type=int_at_least(1), default=40_000,
                    help="bc-td3: transitions driven by DWA's choice plus noise (default 40000)")
-    p.add_argument("--demo-noise", type=finite_float, default=0.2,
+    p.add_argument("--demo-noise", type=non_negative_float, default=0.2,
                    help="bc-td3: σ of the noise on DWA's choice, action units (default 0.2)")
     p.add_argument("--bc-epochs", type=int_at_least(0), default=30,
                    help="bc-td3: behaviour-cloning passes over the demonstrations (default 30)")
@@ -158,13 +159,13 @@ def run_train(args: argparse.Namespace) -> dict[str, Any]:
                 td3_from=start.get("demo_steps"))
     total = model.num_timesteps + start.get("demo_steps", 0)
     summary = {"run": str(out), "recipe": args.recipe, **start, "steps": model.num_timesteps,
-            "total_env_steps": total, "envs": n, "wall_s": round(wall, 1),
-            "steps_per_s": round(total / wall, 1), "episodes": len(episodes),
-            "outcomes": dict(Counter(row["outcome"] for row in episodes)),
-            "mean_return_last_50": (round(float(np.mean(returns[-50:])), 2)
-                                    if returns else None),
-            "model": str(final), "actor": str(out / "actor.onnx"),
-            "export_parity_max_abs": export["provenance"]["parity_max_abs"]}
+               "total_env_steps": total, "envs": n, "wall_s": round(wall, 1),
+               "steps_per_s": round(total / wall, 1), "episodes": len(episodes),
+               "outcomes": dict(Counter(row["outcome"] for row in episodes)),
+               "mean_return_last_50": (round(float(np.mean(returns[-50:])), 2)
+                                       if returns else None),
+               "model": str(final), "actor": str(out / "actor.onnx"),
+               "export_parity_max_abs": export["provenance"]["parity_max_abs"]}
     # how the run was made, beside what it made: the record a shipped policy carries
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()
                 if k != "func"}

@@ -64,7 +64,6 @@ def collect_demonstrations(model: Any, steps: int, noise_sigma: float, seed: int
             labels.append(model.policy.scale_action(expert))
             obs = new_obs
             progress.advance(n, episodes=episodes)
-    model._last_obs = obs  # TD3 goes on from where the demonstrations stopped
     return Demonstrations(np.concatenate(observations).astype(np.float32),
                           np.concatenate(labels).astype(np.float32), episodes, successes)
 

@@ -51,6 +51,8 @@ def ship(run_dir: Path, evaluations: list[Path]) -> Path:
     from export.ship import stamp
 
     summary = _read_json(run_dir / "summary.json")
+    if not isinstance(summary, dict):
+        raise UserError(f"{run_dir / 'summary.json'}: not a `safemove train` summary")
     spec = _read_json(run_dir / "spec.json")
     variant = spec.get("name") if isinstance(spec, dict) else None
     if variant not in shipped.VARIANTS:
@@ -72,7 +74,10 @@ def ship(run_dir: Path, evaluations: list[Path]) -> Path:
     target.parent.mkdir(parents=True, exist_ok=True)
     partial = target.with_suffix(".onnx.partial")
     shutil.copyfile(actor, partial)
-    stamp(partial, {k: summary[k] for k in summary if k not in ("run", "model", "actor")},
-          {"tables": records})
-    os.replace(partial, target)
+    try:
+        stamp(partial, {k: summary[k] for k in summary if k not in ("run", "model", "actor")},
+              {"tables": records})
+        os.replace(partial, target)
+    finally:
+        partial.unlink(missing_ok=True)  # a stamp that failed leaves nothing in the package
     return target
