@@ -13,11 +13,13 @@ import signal
 import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from pathlib import Path
 
 from drivers.depth_source import CountedDepthSource
 from drivers.spark.link import SparkBaseLink
 from runtime.config.settings import DEFAULT_CALIBRATION_PATH, DepthConfig, LoadedConfig
 from runtime.errors import ConfigError
+from runtime.process.control_server import ControlHandoff, ControlServer
 from runtime.process.loop import ControlLoop, Job, LoopReport
 from runtime.process.sdnotify import SystemdNotifier
 
@@ -89,28 +91,43 @@ def open_depth_source(cfg: DepthConfig, source: str) -> CountedDepthSource | Non
     return LiveD435Source(cfg)
 
 
-def run_job(loaded: LoadedConfig, job: Job, max_cycles: int | None = None) -> tuple[LoopReport, dict]:
+def run_job(loaded: LoadedConfig, job: Job, max_cycles: int | None = None,
+            control: tuple[Path, ControlHandoff] | None = None) -> tuple[LoopReport, dict]:
     """Run `job` on the configured base (and depth source) until it ends; returns the loop
-    report and the drivers' counters."""
+    report and the drivers' counters. `control`: the control socket's path and the hand-off
+    the job (a CommandedJob) shares with it; the socket listens before the base is opened
+    (a socket that cannot listen refuses the start, exit 2) and is removed on the way out."""
     if loaded.calibration_path == DEFAULT_CALIBRATION_PATH:
         log.warning("using the vendor default calibration %s: calibrate this robot",
                     loaded.calibration_path)
     depth = open_depth_source(loaded.config.depth, str(loaded.config_path))
     link = SparkBaseLink(loaded.config.base, loaded.calibration.odometry)
     notifier = SystemdNotifier.from_environ()
+    server = None
+    if control is not None:
+        server = ControlServer(control[0], control[1], loaded.config.limits.v_max)
     loop = ControlLoop(loaded.config, loaded.calibration, link, job, notifier,
-                       max_cycles=max_cycles, depth=depth)
+                       max_cycles=max_cycles, depth=depth,
+                       control=None if control is None else control[1])
     with on_stop_signals(loop.request_stop):
-        link.open()
+        if server is not None:
+            server.start()
         try:
-            if depth is not None:
-                depth.start()
-            report = loop.run()
+            link.open()
+            try:
+                if depth is not None:
+                    depth.start()
+                report = loop.run()
+            finally:
+                link.close()
+                if depth is not None:
+                    depth.stop()
         finally:
-            link.close()
-            if depth is not None:
-                depth.stop()
+            if server is not None:
+                server.stop()
     stats = link.stats().__dict__
+    if server is not None:
+        stats["control_socket"] = dict(server.counts)
     log.info("base link: %s", stats)
     if depth is not None:
         stats["depth_source"] = {**depth.counts, "digest": getattr(depth, "digest", None)}

@@ -4,57 +4,101 @@ Each `add_*` fills its command's parser and sets the function that runs it."""
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from runtime.cli.args import add_config_args, add_policy_args, finite_float, policy_model
 from runtime.cli.output import finish
 from runtime.config.settings import load_config, render_calibration, render_config
 from runtime.errors import UserError
 
+if TYPE_CHECKING:
+    from runtime.config.settings import Config
+    from runtime.jobs.dwa import DWAJob
+    from runtime.jobs.safemove import SafeMoveJob
+    from runtime.policy.actor import Policy
+
 
 def add_run(p: argparse.ArgumentParser) -> None:
     add_config_args(p)
-    p.add_argument("--planner", choices=("hold", "dwa", "safemove"), default="hold",
+    p.add_argument("--planner", choices=("hold", "dwa", "safemove"), default=None,
                    help="hold: keep the base stopped with everything else live; dwa: the DWA"
-                        " baseline to --goal, through the shield; safemove: the TD3 actor"
-                        " (--model or a shipped --variant) to --goal, through the shield")
+                        " baseline; safemove: the TD3 actor (--model or a shipped --variant);"
+                        " both through the shield, to --goal or to the goals of the control"
+                        " socket (default: control.planner, or hold when there is neither)")
     p.add_argument("--goal", nargs=2, type=finite_float, metavar=("X", "Y"),
-                   help="goal in the odom frame (m): the robot starts at the origin facing +x")
+                   help="drive to this goal in the odom frame (m) and exit: the robot starts at"
+                        " the origin facing +x (without it, goals come from the control socket)")
     add_policy_args(p)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    """The service's job: `hold` keeps the base stopped; `dwa` drives to --goal with the DWA
-    baseline through the shield; `safemove` with the TD3 actor (--model, a shipped --variant,
-    by default the shipped safemove one), through the shield."""
+    """The service's job. With a control socket (control.socket, or systemd's runtime
+    directory) it holds until goals and missions arrive there and drives to them with the
+    configured planner; with --goal it drives there once and exits; with neither it holds
+    (bring-up: link, odometry, health and watchdog all live)."""
     import time
 
     from runtime.cli.app import run_job
+    from runtime.control.config import control_socket_path
     from runtime.jobs.drive import HoldJob
-    from runtime.jobs.dwa import DWAJob
 
     loaded = load_config(args.config, args.overrides)
+    cfg = loaded.config
+    socket_path = (None if args.goal is not None or args.planner == "hold"
+                   else control_socket_path(cfg.control))
+    if args.planner is None:
+        args.planner = ("hold" if args.goal is None and socket_path is None
+                        else cfg.control.planner)
     model = policy_model(args, "run")
     if args.planner == "hold":
-        job: Any = HoldJob()
-    else:
-        if args.goal is None:
-            raise UserError(f"run --planner {args.planner}: give --goal X Y (metres, odom frame:"
-                            " the robot starts at the origin facing +x)")
-        if loaded.config.depth.source == "none":
-            raise UserError(f"{loaded.config_path}: key 'depth.source': the {args.planner}"
-                            " planner needs depth (d435 or sim), got 'none'")
-        if model is not None:
-            from runtime.jobs.safemove import safemove_job
+        if args.goal is not None:
+            raise UserError("run --planner hold: takes no --goal (hold keeps the base stopped)")
+        report, link_stats = run_job(loaded, HoldJob())
+        return finish({**report.as_dict(), "job": {}, "link": link_stats}, report.exit_code)
+    if cfg.depth.source == "none":
+        raise UserError(f"{loaded.config_path}: key 'depth.source': the {args.planner}"
+                        " planner needs depth (d435 or sim), got 'none'")
+    if args.goal is None and socket_path is None:
+        raise UserError(f"run --planner {args.planner}: give --goal X Y (metres, odom frame),"
+                        " or a control socket for goals (control.socket)")
+    policy = None
+    if model is not None:
+        from runtime.policy.actor import Policy
 
-            job = safemove_job(model, tuple(args.goal), loaded.config, time.monotonic)
-        else:
-            job = DWAJob(tuple(args.goal), loaded.config, time.monotonic)
-    report, link_stats = run_job(loaded, job)
+        policy = Policy(model, cfg.policy)  # validated and warmed up before the base opens
+    if args.goal is not None:
+        job: Any = _planner_job(tuple(args.goal), cfg, policy, time.monotonic)
+        report, link_stats = run_job(loaded, job)
+    else:
+        from runtime.jobs.mission import MissionJob
+        from runtime.process.control_server import ControlHandoff
+
+        assert socket_path is not None
+        handoff = ControlHandoff()
+        job = MissionJob(
+            cfg.control, args.planner,
+            lambda goal, tol, speed: _planner_job(goal, cfg, policy, time.monotonic,
+                                                  arrival_radius_m=tol, speed_limit=speed),
+            lambda event: handoff.post(None, event))
+        report, link_stats = run_job(loaded, job, control=(socket_path, handoff))
     return finish({**report.as_dict(), "job": job.summary(), "link": link_stats},
-                   report.exit_code)
+                  report.exit_code)
+
+
+def _planner_job(goal: tuple[float, float], cfg: Config, policy: Policy | None,
+                 clock: Callable[[], float], **limits: Any) -> DWAJob | SafeMoveJob:
+    """The DWA job, or the SafeMove job with `policy`, to one goal; `limits`: PlanningStep's
+    arrival_radius_m and speed_limit."""
+    from runtime.jobs.dwa import DWAJob
+
+    if policy is None:
+        return DWAJob(goal, cfg, clock, **limits)
+    from runtime.jobs.safemove import SafeMoveJob
+
+    return SafeMoveJob(goal, cfg, policy, clock, **limits)
 
 
 def add_drive(p: argparse.ArgumentParser) -> None:

@@ -26,6 +26,7 @@ from runtime.config.schema import (
     section,
     setting,
 )
+from runtime.control.config import ControlConfig
 from runtime.errors import ConfigError
 from runtime.odometry.ekf import OdometryFilterConfig
 from runtime.perception.depth_points import PerceptionConfig
@@ -114,6 +115,8 @@ class Config:
         RecoveryConfig, "the DWA job's stall recovery: step away from what blocks it, then go on")
     policy: PolicyConfig = section(PolicyConfig, "the TD3 actor (onnxruntime) of the safemove planner")
     limits: LimitsConfig = section(LimitsConfig, "velocity and acceleration limits, applied last")
+    control: ControlConfig = section(
+        ControlConfig, "the control socket: goals and missions for the service, and its status")
 
     def __post_init__(self) -> None:
         period, radius = 1.0 / self.loop.control_hz, self.robot.radius_m

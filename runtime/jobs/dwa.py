@@ -25,8 +25,9 @@ class DWAJob:
     name = "dwa"
 
     def __init__(self, goal_odom: tuple[float, float], config: Config,
-                 clock: Callable[[], float] | None) -> None:
-        self._step = PlanningStep(goal_odom, config, clock, "DWA")
+                 clock: Callable[[], float] | None, **goal: Any) -> None:
+        """`goal`: PlanningStep's arrival_radius_m and speed_limit."""
+        self._step = PlanningStep(goal_odom, config, clock, "DWA", **goal)
         self._recovery = StallRecovery(config.recovery)
 
     @property
@@ -36,6 +37,11 @@ class DWAJob:
     @property
     def reached(self) -> bool:
         return self._step.reached
+
+    @property
+    def shield_changed(self) -> bool:
+        """The shield replaced the last decided command."""
+        return self._step.last_intervened
 
     def pause(self) -> None:
         """Nothing to pause: each cycle plans from the present."""

@@ -62,8 +62,10 @@ class SafeMoveJob:
     name = "safemove"
 
     def __init__(self, goal_odom: tuple[float, float], config: Config, policy: Policy | None,
-                 clock: Callable[[], float] | None, spec: ObsSpec | None = None) -> None:
-        self._planning = PlanningStep(goal_odom, config, clock, "policy")
+                 clock: Callable[[], float] | None, spec: ObsSpec | None = None,
+                 **goal: Any) -> None:
+        """`goal`: PlanningStep's arrival_radius_m and speed_limit."""
+        self._planning = PlanningStep(goal_odom, config, clock, "policy", **goal)
         self._policy = policy
         if spec is None:
             if policy is None:

@@ -92,19 +92,25 @@ class PlanningStep:
     """Goal check, DWA and the shield for a job driving to a goal in the odom frame."""
 
     def __init__(self, goal_odom: tuple[float, float], config: PlanningSections,
-                 clock: Callable[[], float] | None, decision: str) -> None:
+                 clock: Callable[[], float] | None, decision: str, *,
+                 arrival_radius_m: float = ARRIVAL_RADIUS_M,
+                 speed_limit: float | None = None) -> None:
         """`clock` times the DWA and shield budgets (time.monotonic on the robot); None runs
         both to their count limits (refinement rounds, candidates): deterministic, as the
-        lock-stepped evaluation wants."""
+        lock-stepped evaluation wants. `speed_limit` (m/s): a goal's own cap below
+        limits.v_max (the control socket's max_speed)."""
         self.goal = np.asarray(goal_odom, dtype=float)
+        self.arrival_radius_m = arrival_radius_m
         self._cfg = config
         self._clock = clock
         self._decision = decision  # who proposes the command, for the log ("DWA", "policy")
         # the shield never certifies reversing into space the camera cannot see (unless told
         # to trust obstacle memory there): candidates it would refuse are not worth planning
         lim = config.limits
-        self._plan_limits = (lim if config.shield.reverse_into_unseen
-                             else replace(lim, v_min=max(lim.v_min, 0.0)))
+        v_max = lim.v_max if speed_limit is None else min(lim.v_max, speed_limit)
+        self._v_cap = v_max if v_max < lim.v_max else None
+        self._plan_limits = replace(lim, v_max=v_max, v_min=(
+            lim.v_min if config.shield.reverse_into_unseen else max(lim.v_min, 0.0)))
         self.finished = False
         self.reached = False
         self.cycles = 0
@@ -120,7 +126,7 @@ class PlanningStep:
         reaching is always judged on the goal."""
         self.cycles += 1
         here = np.array((odom.x, odom.y))
-        if float(np.hypot(*(self.goal - here))) <= ARRIVAL_RADIUS_M:
+        if float(np.hypot(*(self.goal - here))) <= self.arrival_radius_m:
             self.reached = True
             if abs(odom.v) < STILL_M_S:
                 self.finished = True
@@ -147,7 +153,10 @@ class PlanningStep:
         return PlanningContext(goal_base, Twist(odom.v, odom.omega), result, pos, std, radii, sw)
 
     def certify(self, command: Twist, ctx: PlanningContext) -> Twist:
-        """The shield's decision on `command`; interventions counted and logged."""
+        """The shield's decision on `command` (first slowed to the goal's speed cap along the
+        same arc); interventions counted and logged."""
+        if self._v_cap is not None and command.v > self._v_cap:
+            command = Twist(self._v_cap, command.omega * self._v_cap / command.v)
         ok = ctx.dwa.admissible
         decision = shield(command, ctx.state, ctx.dwa.samples[ok], ctx.dwa.total[ok],
                           ctx.shield_world, self._cfg.limits, self._cfg.shield,

@@ -20,9 +20,11 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 from runtime.config.settings import Calibration, Config
+from runtime.control.protocol import Request
 from runtime.errors import DeviceError
 from runtime.perception.world_model import WorldState
 from runtime.pipeline import PIPELINE_STAGES, CycleInput, Job, Pipeline
+from runtime.process.control_server import MAX_PENDING, ControlHandoff
 from runtime.process.sdnotify import SystemdNotifier
 from runtime.process.timing import RateKeeper, RingStats
 from runtime.types import STOP, DepthFrame, Odometry, Twist, WheelIncrement
@@ -47,6 +49,20 @@ class BaseLink(Protocol):
     def poll(self) -> list[WheelIncrement]: ...
 
     def set_command(self, twist: Twist, now: float) -> None: ...
+
+
+class CommandedJob(Job, Protocol):
+    """A job that takes commands from the control socket (runtime.jobs.mission.MissionJob)."""
+
+    interventions: int
+
+    def handle(self, request: Request, now: float, odom: Odometry) -> dict[str, Any]: ...
+
+    def held(self, now: float, reason: str, odom: Odometry) -> None: ...
+
+    def shutdown(self, reason: str, odom: Odometry) -> None: ...
+
+    def status(self) -> dict[str, Any]: ...
 
 
 class DepthInput(Protocol):
@@ -76,7 +92,8 @@ class DepthStats:
         self.last_t = frame.t
 
 
-STAGES = ("base_read", "depth_read", *PIPELINE_STAGES, "base_write", "cycle", "floor_check", "gc")
+STAGES = ("base_read", "depth_read", *PIPELINE_STAGES, "base_write", "cycle", "floor_check",
+          "control", "gc")
 GC_FULL_EVERY = 600  # cycles between full collections (30 s at 20 Hz)
 
 
@@ -142,9 +159,11 @@ class ControlLoop:
         max_cycles: int | None = None,
         depth: DepthInput | None = None,
         wait: Callable[[float], bool] | None = None,
+        control: ControlHandoff | None = None,
     ) -> None:
         """`wait(seconds)`: sleep, True when a stop was requested meanwhile (default: on the
-        loop's stop event, so a signal handler ends the sleep at once)."""
+        loop's stop event, so a signal handler ends the sleep at once). `control`: the hand-off
+        of the control socket; the job must then be a CommandedJob."""
         self._cfg = config
         self._depth = depth
         self._pipeline = Pipeline(config, calibration, job, depth=depth is not None, clock=clock)
@@ -164,6 +183,9 @@ class ControlLoop:
         self._ch = {name: self.timings.channel(name) for name in self.timings.names}
         self._transitions: list[tuple[float, str, str]] = []
         self._rate = RateKeeper(1.0 / config.loop.control_hz, clock, self._wait)
+        self._control = control
+        self._last_fault: dict[str, Any] | None = None
+        self._counters = {"cycles": 0, "degraded": 0, "nonfinite": 0}
 
     @property
     def odometry(self) -> Odometry:
@@ -190,6 +212,8 @@ class ControlLoop:
             "state %s -> %s: %s", self.state.value, state.value, why,
         )
         self._transitions.append((now, self.state.value, state.value))
+        if state in (State.DEGRADED, State.FAULT):
+            self._last_fault = {"t": now, "state": state.value, "reason": why}
         self.state = state
         self._notifier.status(f"{state.value}: {why}")
 
@@ -214,6 +238,8 @@ class ControlLoop:
                     f"depth source '{self._cfg.depth.source}': no frame within {timeout:g} s"
                 )
             self._link.set_command(STOP, now)
+            if self._control is not None:
+                self._serve_control(now, "INIT: waiting for base feedback and depth")
             if self._wait(period):
                 return False
         return True
@@ -232,7 +258,7 @@ class ControlLoop:
         """Run to the end. Exceptions inside a cycle become FAULT (exit 1) with the stop sent by
         the link's close(), which the caller does in a finally."""
         period = self._rate.period
-        counters = {"cycles": 0, "degraded": 0, "nonfinite": 0}
+        counters = self._counters
         exit_code, reason = 0, ""
         self._notifier.status("INIT: waiting for base feedback")
         try:
@@ -252,6 +278,9 @@ class ControlLoop:
             exit_code = 1
         finally:
             gc.enable()
+        if self._control is not None:
+            self._commanded.shutdown(f"{self.state.value}: {reason}", self.odometry)
+            self._publish_status(self._clock(), None)
         self._notifier.stopping(f"{self.state.value}: {reason}")
         return LoopReport(
             state=self.state,
@@ -317,6 +346,11 @@ class ControlLoop:
             t5_floor = clock()
             rec(ch["floor_check"], t5_floor - t5)
             t5 = t5_floor
+            if self._control is not None:
+                self._serve_control(t5, out.hold)
+                t5_control = clock()
+                rec(ch["control"], t5_control - t5)
+                t5 = t5_control
             if self._job.finished:
                 break
             if self._max_cycles is not None and counters["cycles"] >= self._max_cycles:
@@ -332,6 +366,40 @@ class ControlLoop:
             gc.collect(2 if full else 0)
             rec(ch["gc"], clock() - t5)
             rate.sleep()
+
+    @property
+    def _commanded(self) -> CommandedJob:
+        return self._job  # type: ignore[return-value]
+
+    def _serve_control(self, now: float, hold: str | None) -> None:
+        """In the slack after the command: the hold time of a goal, the commands the control
+        socket handed over (at most MAX_PENDING; each takes effect next cycle), and the status
+        snapshot. Nothing here waits: the hand-off is deques and one assignment."""
+        control, job, odom = self._control, self._commanded, self.odometry
+        assert control is not None
+        if hold is not None:
+            job.held(now, hold, odom)
+        for _ in range(MAX_PENDING):
+            try:
+                client, request = control.commands.popleft()
+            except IndexError:
+                break
+            control.post(client, job.handle(request, now, odom))
+        self._publish_status(now, hold)
+
+    def _publish_status(self, now: float, hold: str | None) -> None:
+        if self._control is None:
+            return
+        o, c = self.odometry, self._counters
+        self._control.status = {
+            "t": now, "state": self.state.value, "hold_reason": hold,
+            "pose": {"x": o.x, "y": o.y, "theta": o.theta},
+            "velocity": {"v": o.v, "omega": o.omega},
+            "mission": self._commanded.status(),
+            "shield_interventions": self._commanded.interventions,
+            "missed_deadlines": self._rate.misses, "cycles": c["cycles"],
+            "degraded_cycles": c["degraded"], "last_fault": self._last_fault,
+        }
 
     def _check_floor(self) -> None:
         """Health check of the camera's calibration, run in the slack after the command: it
