@@ -203,6 +203,12 @@ def add_bench(p: argparse.ArgumentParser) -> None:
                     help="the actor (default: a random 61-400-300-2 one)")
     bp.add_argument("--startup-runs", type=int_at_least(0), default=3,
                     help="starts of `safemove run --planner safemove` (default 3; 0: none)")
+    bp = _bench_parser(bsub, "control", "the control cycle with hostile control-socket clients"
+                       " (flooding, never reading) against none, in one run", bench_control_run)
+    bp.add_argument("--cycles", type=int_at_least(20), default=400,
+                    help="control cycles per phase (default 400: 20 s at 20 Hz)")
+    bp.add_argument("--clients", type=int_at_least(1), default=4,
+                    help="hostile client processes in each hostile phase (default 4)")
 
 
 def bench_loop_run(args: argparse.Namespace) -> int:
@@ -261,6 +267,12 @@ def bench_cycle_run(args: argparse.Namespace) -> int:
 
     return print_figures(bench_cycle(args.cycles, args.frames, args.model, args.startup_runs),
                          args.json)
+
+
+def bench_control_run(args: argparse.Namespace) -> int:
+    from sim_stub.bench_control import bench_control
+
+    return print_figures(bench_control(args.cycles, args.clients), args.json)
 
 
 def add_export(p: argparse.ArgumentParser) -> None:

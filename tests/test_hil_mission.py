@@ -90,7 +90,7 @@ def test_service_takes_a_mission_and_a_cancel(tmp_path, planner):
                 [sys.executable, "-m", "runtime.cli.main", "run",
                  "--set", f"control.planner={planner}", "--set", f"control.socket={sock}", "--set", f"base.port={sim.link}",
                  "--set", "depth.source=sim", "--set", f"depth.sim_socket={sim.depth_socket}",
-                 "--set", "loop.stats_interval_s=0"],
+                 "--set", "loop.stats_interval_s=5"],
                 stdout=subprocess.PIPE, stderr=err, text=True,
                 env={**os.environ, "PYTHONUNBUFFERED": "1"})
         try:

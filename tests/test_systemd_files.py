@@ -100,6 +100,10 @@ def test_unit_settings():
     assert one(s, svc, "SupplementaryGroups").split() == ["dialout", "video", "plugdev"]
     assert one(s, svc, "StateDirectory") == "safemove"
     assert one(s, svc, "LogsDirectory") == "safemove"
+    # the control socket: in the runtime directory, reachable by the service's group only
+    assert one(s, svc, "RuntimeDirectory") == "safemove"
+    assert one(s, svc, "RuntimeDirectoryMode") == "0750"
+    assert one(s, svc, "IPAddressDeny") == "any"
     assert one(s, svc, "Environment") == "PYTHONUNBUFFERED=1"
     assert one(s, svc, "DevicePolicy") == "closed"
     assert one(s, svc, "PrivateDevices") == "no"

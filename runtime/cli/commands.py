@@ -82,7 +82,8 @@ def run(args: argparse.Namespace) -> int:
             cfg.control, args.planner,
             lambda goal, tol, speed: _planner_job(goal, cfg, policy, time.monotonic,
                                                   arrival_radius_m=tol, speed_limit=speed),
-            lambda event: handoff.post(None, event))
+            handoff.post_event)
+        handoff.status = {"state": "INIT", "mission": job.status()}
         report, link_stats = run_job(loaded, job, control=(socket_path, handoff))
     return finish({**report.as_dict(), "job": job.summary(), "link": link_stats},
                   report.exit_code)

@@ -2,8 +2,8 @@
 
 Validation is here and only here, before anything is handed to the control cycle, so the cycle
 sees typed, finite, in-range requests or nothing. Every rejection is a `ProtocolError` whose
-message names the field and what is wrong; the server turns it into an error reply. The full
-schema, with examples, is in docs/control-protocol.md.
+message names the field and what is wrong; the server turns it into an error reply. The schema is
+documented in the README (Reference: The control socket).
 """
 
 from __future__ import annotations

@@ -6,7 +6,9 @@ actor, both through the shield) with its tolerance and speed cap; reaching it me
 within the tolerance and standing still, as for a one-shot `--goal`. A waypoint fails when its
 time runs out (timeout), when the robot has not come 0.1 m closer for a while (blocked), or
 when the loop has held (DEGRADED) too long: the robot then stays stopped instead of driving
-off by itself minutes later. Every end is an event; every command gets a reply.
+off by itself minutes later. A looping mission whose whole lap was reached without driving a
+cycle (every waypoint within the tolerance of the one before it) fails instead of lapping once
+a cycle. Every end is an event; every command gets a reply.
 
 Everything here runs on the control loop's thread, in the slack after a cycle's command
 (`handle`, `held`) or inside `Pipeline.step` (`prepare`, `decide`): no locks.
@@ -16,6 +18,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -59,6 +62,9 @@ class PlannerJob(Protocol):
     def shield_changed(self) -> bool:
         """The shield replaced the last decided command."""
 
+    def summary(self) -> dict[str, Any]:
+        """Its report; 'shield_interventions': counts by kind."""
+
 
 # (goal in odom, arrival radius, speed cap) → the planner job for one waypoint
 PlannerFactory = Callable[[tuple[float, float], float, "float | None"], PlannerJob]
@@ -84,6 +90,7 @@ class MissionJob:
         self._loop = False
         self._timeout_s = config.waypoint_timeout_s
         self._index = 0
+        self._lap_drove = False  # a cycle of this lap (of a looping mission) was driven
         self._job: PlannerJob | None = None
         self._active_s = 0.0  # navigating time on this waypoint (paused time excluded)
         self._last_t: float | None = None
@@ -93,7 +100,8 @@ class MissionJob:
         self.distance: float | None = None
         self.last_outcome: dict[str, Any] | None = None
         self.counts = {"reached": 0, "cancelled": 0, "preempted": 0, "failed": 0}
-        self.interventions = 0
+        self.interventions = 0  # cycles whose command the shield changed
+        self._shield_kinds: Counter[str] = Counter()  # by kind, of the planners done with
 
     # --- commands (from the control socket, applied between cycles) ---------------------------
 
@@ -159,6 +167,9 @@ class MissionJob:
     def _begin_waypoint(self, index: int) -> None:
         t = self._targets[index]
         self._index = index
+        if index == 0:
+            self._lap_drove = False
+        self._drop_planner()
         self._job = self._make((t.x, t.y), t.tolerance, t.max_speed)
         self._active_s = self._progress_s = 0.0
         self._last_t = None
@@ -194,6 +205,7 @@ class MissionJob:
             self._end("failed", f"blocked: no progress toward waypoint {self._index + 1} for"
                       f" {self._cfg.blocked_timeout_s:g} s ({self.distance:.2f} m to go)", odom)
             return Prepared(STOP)
+        self._lap_drove = True
         return Prepared((job, inner))
 
     def decide(self, prepared: Prepared, action: np.ndarray | None = None) -> Twist:
@@ -232,6 +244,11 @@ class MissionJob:
         nxt = self._index + 1
         if nxt < len(self._targets):
             self._begin_waypoint(nxt)
+        elif self._loop and not self._lap_drove:
+            # every waypoint was reached where the robot stood (each within the tolerance of
+            # the one before it): the laps would repeat without moving, an event every cycle
+            self._end("failed", f"looping mission: all {len(self._targets)} waypoint(s) reached"
+                      " without moving (each is within the tolerance of the one before it)", odom)
         elif self._loop:
             self._begin_waypoint(0)
         else:
@@ -245,7 +262,7 @@ class MissionJob:
                     waypoint=self._index + 1, waypoints=len(self._targets))
         self.last_outcome = {"goal_id": self.goal_id, "outcome": outcome, "reason": reason}
         self.state = "idle"
-        self._job = None
+        self._drop_planner()
         self._targets = ()
         self.distance = None
 
@@ -272,7 +289,19 @@ class MissionJob:
             "last_outcome": self.last_outcome,
         }
 
+    def _drop_planner(self) -> None:
+        """Done with the current waypoint's planner: keep its shield interventions."""
+        if self._job is not None:
+            self._shield_kinds.update(self._job.summary().get("shield_interventions", {}))
+        self._job = None
+
     def summary(self) -> dict[str, Any]:
+        """The run's report. 'shield_interventions': by kind, as every planner job reports
+        them (the loop's statistics line and the tools read a dict)."""
+        kinds = Counter(self._shield_kinds)
+        if self._job is not None:
+            kinds.update(self._job.summary().get("shield_interventions", {}))
         return {"planner": self.planner, "goals": self._next_id - 1, "outcomes": self.counts,
-                "shield_interventions": self.interventions, "last_outcome": self.last_outcome}
+                "shield_interventions": dict(kinds), "shield_changed_cycles": self.interventions,
+                "last_outcome": self.last_outcome}
 

@@ -45,6 +45,10 @@ MAX_PENDING = 8  # commands waiting for the cycle; more are refused as busy
 MAX_OUTBOX_BYTES = 1 << 20  # unread replies and events per client before it is dropped
 MAX_CLIENTS = 16
 REQUESTS_PER_S = 100.0  # per client; the burst allowance is one second's worth
+TOTAL_REQUESTS_PER_S = 300.0  # all clients together (reconnecting does not buy a new burst)
+BYTES_PER_TOKEN = 4096  # a long line costs more: 1 token + 1 per 4 KiB
+EOF_LINGER_S = 5.0  # a client that half-closed waits this long at most for its replies
+LINES_PER_PASS = 8  # lines taken from one client before the others get their turn
 SOCKET_MODE = 0o660  # the service's group may command the robot; others may not connect
 
 
@@ -70,6 +74,10 @@ class ControlHandoff:
             except OSError:  # the wake-up pipe is full: the server is awake anyway
                 pass
 
+    def post_event(self, event: dict[str, Any]) -> None:
+        """From the cycle: an event for every client (MissionJob's `emit`)."""
+        self.post(None, event)
+
 
 @dataclass
 class _Client:
@@ -83,6 +91,8 @@ class _Client:
     subscribe_period: float | None = None
     next_status: float = 0.0
     closing: bool = False
+    inflight: int = 0  # its commands handed to the cycle and not yet answered
+    eof_at: float | None = None  # when it half-closed (shutdown(SHUT_WR), `nc -N`, socat)
 
 
 def peer_credentials(sock: socket.socket) -> str:
@@ -110,6 +120,8 @@ class ControlServer:
         self._listener: socket.socket | None = None
         self._wake_r, self._wake_w = socket.socketpair()
         self._flush_deadline = 0.0
+        self._tokens = TOTAL_REQUESTS_PER_S
+        self._refilled = time.monotonic()
         self.counts = {"clients": 0, "requests": 0, "refused": 0, "dropped_clients": 0}
 
     # --- life cycle ------------------------------------------------------------------------
@@ -119,7 +131,13 @@ class ControlServer:
         listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         try:
             self._clear_stale()
-            listener.bind(str(self.path))
+            # created with its mode: no moment in which the umask's mode lets others connect
+            # (start-up runs before any other thread of this process creates files)
+            umask = os.umask(0o777 & ~SOCKET_MODE)
+            try:
+                listener.bind(str(self.path))
+            finally:
+                os.umask(umask)
             os.chmod(self.path, SOCKET_MODE)
             listener.listen(MAX_CLIENTS)
         except OSError as exc:
@@ -193,6 +211,9 @@ class ControlServer:
                 self._deliver()
                 self._publish_status(now)
                 self._refill(now)
+                for client in list(self._clients.values()):  # each client's turn, in order
+                    if client.inbox.find(b"\n") >= 0:
+                        self._take_lines(client)
             self._drain_before_exit()
         except Exception:  # the robot must keep running; the socket is gone, say so loudly
             log.exception("control socket server failed; goals can no longer be given")
@@ -200,6 +221,10 @@ class ControlServer:
     def _timeout(self, now: float) -> float:
         due = [c.next_status for c in self._clients.values() if c.subscribe_period]
         due += [c.refilled + 1.0 / REQUESTS_PER_S for c in self._clients.values() if c.tokens < 1]
+        if self._tokens < 1:
+            due.append(self._refilled + 1.0 / TOTAL_REQUESTS_PER_S)
+        elif any(self._may_take(c) and c.inbox.find(b"\n") >= 0 for c in self._clients.values()):
+            return 0.0  # lines are waiting for their turn
         return 0.25 if not due else min(0.25, max(0.0, min(due) - now))
 
     def _on_ready(self, sock: Any, client: _Client | None, events: int) -> None:
@@ -248,30 +273,52 @@ class ControlServer:
             return
         except OSError:
             data = b""
-        if not data:
-            self._close(client)
+        if not data:  # the client is done sending; its replies may still be on their way
+            client.eof_at = time.monotonic()
+            self._take_lines(client)
+            self._finish_if_done(client)
             return
         client.inbox += data
         self._take_lines(client)
 
+    def _may_take(self, client: _Client) -> bool:
+        return client.tokens >= 1 and self._tokens >= 1 and not client.closing
+
+    def _readable(self, client: _Client) -> bool:
+        """Read more only when every complete line read so far has been handled: the inbox
+        stays below one read plus one line."""
+        return (self._may_take(client) and client.eof_at is None
+                and client.inbox.find(b"\n") < 0)
+
+    def _finish_if_done(self, client: _Client) -> None:
+        """A half-closed client is closed once it has every reply it is owed."""
+        if (client.eof_at is not None and client.key in self._clients and not client.outbox
+                and client.inflight == 0 and client.inbox.find(b"\n") < 0):
+            self._close(client)
+
     def _take_lines(self, client: _Client) -> None:
-        while client.tokens >= 1 and not client.closing:
+        """Complete lines, as far as the tokens and this pass's share allow; the rest waits
+        in the inbox (read again next pass, or when the tokens refill)."""
+        for _ in range(LINES_PER_PASS):
+            if not self._may_take(client):
+                break
             end = client.inbox.find(b"\n")
-            if end < 0:
-                if len(client.inbox) > MAX_LINE_BYTES:
-                    self._refuse_and_close(client, f"request line longer than {MAX_LINE_BYTES}"
-                                           " bytes")
-                return
-            if end > MAX_LINE_BYTES:
-                self._refuse_and_close(client, f"request line longer than {MAX_LINE_BYTES} bytes")
-                return
+            if end < 0 or end > MAX_LINE_BYTES:
+                break
             line = bytes(client.inbox[:end])
             del client.inbox[:end + 1]
-            client.tokens -= 1
+            cost = 1 + len(line) // BYTES_PER_TOKEN
+            client.tokens -= cost
+            self._tokens -= cost
             if line.strip():
                 self._request(client, line)
-        if client.tokens < 1 and client.sock.fileno() >= 0:
-            self._interest(client)  # stop reading it until its tokens refill
+        end = client.inbox.find(b"\n")
+        if not client.closing and (end > MAX_LINE_BYTES or (
+                end < 0 and len(client.inbox) > MAX_LINE_BYTES)):
+            self._refuse_and_close(client, f"request line longer than {MAX_LINE_BYTES} bytes")
+            return
+        if client.sock.fileno() >= 0:
+            self._interest(client)  # stop reading it while its tokens are out
 
     def _request(self, client: _Client, line: bytes) -> None:
         self.counts["requests"] += 1
@@ -299,6 +346,7 @@ class ControlServer:
                                          " the control cycle; retry"))
                 return
             log.info("control: %s request %r from %s", req.type, req.id, client.peer)
+            client.inflight += 1
             self.handoff.commands.append((client.key, req))
 
     def _refuse_and_close(self, client: _Client, why: str) -> None:
@@ -331,13 +379,14 @@ class ControlServer:
         if client.closing and not client.outbox:
             self._close(client)
             return
+        self._finish_if_done(client)
         self._interest(client)
 
     def _interest(self, client: _Client) -> None:
         if client.sock.fileno() < 0:  # closed meanwhile (dropped, or its peer went away)
             return
         events = selectors.EVENT_WRITE if client.outbox else 0
-        if client.tokens >= 1 and not client.closing:
+        if self._readable(client):
             events |= selectors.EVENT_READ
         if events:
             self._sel.modify(client.sock, events, client) if self._registered(client) else \
@@ -367,6 +416,9 @@ class ControlServer:
         out = self.handoff.outgoing
         while out:
             key, message = out.popleft()
+            if key is not None and key in self._clients:
+                owed = self._clients[key]
+                owed.inflight = max(0, owed.inflight - 1)
             targets = self._clients.values() if key is None else (
                 [self._clients[key]] if key in self._clients else [])
             for client in list(targets):
@@ -379,16 +431,22 @@ class ControlServer:
                 self._send(client, {"v": VERSION, "type": "status", **self.handoff.status})
 
     def _refill(self, now: float) -> None:
+        was_dry = self._tokens < 1
+        self._tokens = min(TOTAL_REQUESTS_PER_S,
+                           self._tokens + (now - self._refilled) * TOTAL_REQUESTS_PER_S)
+        self._refilled = now
         for client in list(self._clients.values()):
-            if client.tokens < REQUESTS_PER_S:
-                was_empty = client.tokens < 1
-                client.tokens = min(REQUESTS_PER_S,
-                                    client.tokens + (now - client.refilled) * REQUESTS_PER_S)
-                if was_empty and client.tokens >= 1:
-                    self._take_lines(client)
-                    if client.key in self._clients:
-                        self._interest(client)
+            was_empty = client.tokens < 1 or was_dry
+            client.tokens = min(REQUESTS_PER_S,
+                                client.tokens + (now - client.refilled) * REQUESTS_PER_S)
             client.refilled = now
+            if was_empty and self._may_take(client):
+                self._interest(client)  # reading it again
+            if client.eof_at is not None:
+                if now - client.eof_at > EOF_LINGER_S:
+                    self._close(client)
+                else:
+                    self._finish_if_done(client)
 
     def _drain_before_exit(self) -> None:
         """Last replies and events (a goal failed by the shutdown) reach their clients."""
