@@ -336,8 +336,36 @@ def add_eval(p: argparse.ArgumentParser) -> None:
     p.add_argument("--jobs", type=int_at_least(1), default=1,
                    help="worker processes (default 1)")
     _add_episode_args(p, crowd="scenario")
+    p.add_argument("--plots", type=Path, metavar="DIR",
+                   help="also draw every episode's path per scenario and the outcome rates as"
+                        " PNG files into DIR (created if missing; needs matplotlib)")
     p.add_argument("--json", action="store_true", help="print only the JSON result")
     p.set_defaults(func=eval_run)
+
+
+def _plots_dir(directory: Path) -> Path:
+    """Check before any episode runs that `eval --plots` can draw (matplotlib) and write into
+    `directory` (created if missing); each problem is one line, exit 2."""
+    import os
+    import tempfile
+
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        raise UserError("eval --plots: matplotlib is not installed; install it with"
+                        " pip install 'safemove-rl[plots]'") from None
+    directory = directory.expanduser()
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".safemove-plots-", dir=directory)
+        os.close(fd)
+        os.unlink(probe)
+    except FileExistsError:
+        raise UserError(f"eval --plots: {directory} is a file, not a directory") from None
+    except OSError as exc:
+        raise UserError(f"eval --plots: cannot write into {directory}:"
+                        f" {exc.strerror or exc}") from None
+    return directory
 
 
 def eval_run(args: argparse.Namespace) -> int:
@@ -348,8 +376,9 @@ def eval_run(args: argparse.Namespace) -> int:
     model = policy_model(args, "eval")
     if not 0 < args.fps <= 90:
         raise UserError(f"eval: --fps must be in (0, 90], got {args.fps}")
+    plots = None if args.plots is None else _plots_dir(args.plots)
     settings = EvalSettings(args.planner, args.config, tuple(args.overrides), model,
-                            args.fps, args.noise, args.crowd)
+                            args.fps, args.noise, args.crowd, trajectories=plots is not None)
 
     counts: dict[str, int] = {}
 
@@ -369,14 +398,20 @@ def eval_run(args: argparse.Namespace) -> int:
         bar.advance(1, **counts)
 
     total = len(args.scenarios) * args.episodes
+    trajectories: list[Any] = []
     # --json keeps stdout to the result; without a terminal, stderr still gets status lines
     with Progress(total, "eval", "episode",
                   line_every=max(total // 20, 1) if args.json else None) as bar:
         result = evaluate(args.scenarios, args.episodes, args.seed, settings, args.jobs,
-                          episode_ended)
+                          episode_ended, trajectories)
     if not args.json:
         print(table(result), file=sys.stderr)
-    print_json(result)
+    print_json(result)  # before the pictures: a failure drawing them loses no result
+    if plots is not None:
+        from sim_stub.plots import plot_eval
+
+        for path in plot_eval(result, trajectories, plots):
+            print(f"eval: wrote {path}", file=sys.stderr)
     return 0
 
 

@@ -12,14 +12,19 @@ The world judges each episode from ground truth: success (within the scenario's 
 collision, or timeout. A collision is at fault when the robot drove into the other body or the
 body was not coming at it; `moving` counts every collision where the robot was moving at all
 (sim_stub/world.py has the rule and why). Path length and speed come from the true trajectory.
+
+With `EvalSettings.trajectories` each episode also keeps that trajectory (`Trajectory`: the
+robot's true position in the world frame at every control cycle, where the people were at the
+end) for `safemove eval --plots` (sim_stub/plots.py); it is not part of the JSON result.
 """
 
 from __future__ import annotations
 
 import logging
+from array import array
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +50,20 @@ class EvalSettings:
     fps: float
     noise: bool
     crowd: str = "scenario"  # scenario | reactive | oblivious: whether agents see the robot
+    trajectories: bool = False  # keep each episode's Trajectory (for --plots)
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """An episode's ground truth for pictures, in the world frame: the robot's position at the
+    start and at every control cycle, then where the world judged the episode over (float32,
+    shape (N, 2), m); the goal it was sent to; the people's positions at the end (at the
+    contact for a collision) and their radius."""
+
+    xy: np.ndarray
+    goal: tuple[float, float]
+    people_xy: np.ndarray  # (M, 2)
+    people_radius: float
 
 
 @dataclass(frozen=True)
@@ -62,6 +81,12 @@ class EpisodeResult:
     shield_interventions: int
     cycles: int
     job_p99_ms: float
+    # with EvalSettings.trajectories only; never in the JSON result (`episode_dict`)
+    trajectory: Trajectory | None = field(default=None, repr=False, compare=False)
+
+    def episode_dict(self) -> dict[str, Any]:
+        """The JSON result's entry for this episode: every field but the trajectory."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.name != "trajectory"}
 
 
 def make_job(settings: EvalSettings, goal_odom: tuple[float, float], loaded: LoadedConfig
@@ -88,7 +113,11 @@ def run_episode(scenario_name: str, seed: int, settings: EvalSettings) -> Episod
     job = make_job(settings, episode.goal_odom, loaded)
     pipeline = Pipeline(episode.config, loaded.calibration, job)
     job_s: list[float] = []
+    robot = episode.world.robot  # the world's ground truth, updated in place
+    xy: array[float] | None = array("f", (robot.x, robot.y)) if settings.trajectories else None
     while (inp := episode.cycle()) is not None:
+        if xy is not None:
+            xy.extend((robot.x, robot.y))
         cycle = pipeline.step(inp)
         job_s.append(cycle.stage_s["job"])
         episode.send(cycle.command)
@@ -96,6 +125,13 @@ def run_episode(scenario_name: str, seed: int, settings: EvalSettings) -> Episod
     world = episode.world
     out = world.outcome
     summary = job.summary()
+    trajectory = None
+    if xy is not None:
+        xy.extend((robot.x, robot.y))  # where the episode was judged over (the contact)
+        trajectory = Trajectory(
+            np.frombuffer(xy, dtype=np.float32).reshape(-1, 2).copy(),
+            (float(world.goal[0]), float(world.goal[1])),
+            world.crowd.positions.astype(np.float32), float(world.scenario.crowd.radius))
     return EpisodeResult(
         scenario=scenario_name, seed=seed, status=out.status, time_s=out.t,
         path_length_m=episode.path_length_m, at_fault=bool(out.at_fault),
@@ -105,7 +141,8 @@ def run_episode(scenario_name: str, seed: int, settings: EvalSettings) -> Episod
         min_separation_m=float(world.min_separation),
         shield_interventions=int(sum(summary.get("shield_interventions", {}).values())),
         cycles=episode.cycles,
-        job_p99_ms=float(np.percentile(1e3 * np.array(job_s), 99)) if job_s else 0.0)
+        job_p99_ms=float(np.percentile(1e3 * np.array(job_s), 99)) if job_s else 0.0,
+        trajectory=trajectory)
 
 
 def _run_one(task: tuple[str, int, EvalSettings]) -> EpisodeResult:
@@ -138,11 +175,13 @@ def summarise(results: list[EpisodeResult]) -> dict[str, Any]:
 
 
 def evaluate(scenarios: list[str], episodes: int, seed: int, settings: EvalSettings,
-             jobs: int = 1, progress: Callable[[EpisodeResult], None] | None = None
-             ) -> dict[str, Any]:
+             jobs: int = 1, progress: Callable[[EpisodeResult], None] | None = None,
+             trajectories: list[Trajectory | None] | None = None) -> dict[str, Any]:
     """`episodes` seeded episodes (seeds seed, seed+1, …) of each scenario; `jobs` worker
     processes. `progress` gets each episode as it ends (with workers: in the order they end).
-    Returns the per-scenario summaries and every episode, in task order."""
+    Returns the per-scenario summaries and every episode, in task order; `trajectories`, when
+    given, gets each episode's trajectory in the same order (None unless
+    `settings.trajectories`)."""
     for name in scenarios:
         load_scenario(name)  # a bad name or file fails here, once, with its message
     load_config(settings.config_path, list(settings.overrides))
@@ -160,6 +199,8 @@ def evaluate(scenarios: list[str], episodes: int, seed: int, settings: EvalSetti
                 if progress is not None:
                     progress(done.result())
             results = [f.result() for f in futures]
+    if trajectories is not None:
+        trajectories.extend(r.trajectory for r in results)
     model = settings.model if settings.planner == "safemove" else None
     return {
         "planner": settings.planner,
@@ -170,7 +211,7 @@ def evaluate(scenarios: list[str], episodes: int, seed: int, settings: EvalSetti
         "crowd": settings.crowd,
         "scenarios": {name: summarise([r for r in results if r.scenario == name])
                       for name in scenarios},
-        "episodes": [asdict(r) for r in results],
+        "episodes": [r.episode_dict() for r in results],
     }
 
 
