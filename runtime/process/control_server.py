@@ -312,6 +312,7 @@ class ControlServer:
             self._tokens -= cost
             if line.strip():
                 self._request(client, line)
+            time.sleep(0)  # hand the GIL to the control cycle if it is waiting for it
         end = client.inbox.find(b"\n")
         if not client.closing and (end > MAX_LINE_BYTES or (
                 end < 0 and len(client.inbox) > MAX_LINE_BYTES)):
