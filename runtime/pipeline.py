@@ -112,6 +112,7 @@ class Pipeline:
         self.depth_guard = DepthGuard(config.depth.max_future_s)
         self.latest_depth: DepthFrame | None = None
         self._perceived: DepthFrame | None = None
+        self.perceived_now: DepthFrame | None = None  # the frame the last cycle's world model read
         self._world_model = WorldModel(config, calibration.camera, clock)
         self._ekf = OdometryEKF(calibration.odometry.axle_length_m, config.odometry)
         self._poses = PoseHistory()
@@ -140,10 +141,11 @@ class Pipeline:
         stage_s["odometry"] = clock() - t0
         self.admit(inp.frames, inp.t)
         frame = self.latest_depth
+        self.perceived_now = None
         if frame is not None and frame is not self._perceived:
             # the newest frame only (a planner wants the present, not a backlog), placed from
             # where the robot was at its stamp
-            self._perceived = frame
+            self._perceived = self.perceived_now = frame
             self.world = self._world_model.update(frame, self.odom,
                                                   self._poses.at(frame.t, self.odom))
             stage_s.update(self._world_model.stage_s)

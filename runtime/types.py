@@ -146,3 +146,17 @@ class Prepared:
 
     context: Any = None
     observation: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class DecisionTrace:
+    """What a planner job decided in its last cycle, for the flight recorder (None where a job
+    has no such stage): the planning context (DWA's result, the tracks' predictions), the
+    observation and the actor's output, the shield's decision, the safe corridor, the goal."""
+
+    context: Any = None  # runtime.planning.planning_step.PlanningContext
+    observation: np.ndarray | None = None
+    action: np.ndarray | None = None
+    shield: Any = None  # runtime.safety.shield.ShieldDecision
+    corridor: Any = None  # runtime.planning.corridor.Corridor
+    goal_odom: tuple[float, float] | None = None

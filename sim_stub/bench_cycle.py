@@ -42,6 +42,8 @@ from runtime.config.settings import LoadedConfig, load_config
 from runtime.jobs.safemove import SafeMoveJob
 from runtime.pipeline import CycleInput, Pipeline
 from runtime.policy.actor import Policy
+from runtime.process.cycle_record import CycleRecord
+from runtime.process.recorder import Recorder
 from runtime.types import BaseStatus, CliffSensor, DepthFrame, Proximity, Twist, WheelIncrement
 from sim_stub.bench import ms_stats
 from sim_stub.bench_episode import quiet_logs, write_random_actor
@@ -55,7 +57,8 @@ MOTION = Twist(0.2, 0.15)  # the robot's command while recording
 GOAL_ODOM = (50.0, 0.0)  # never reached: every cycle plans
 WARMUP_CYCLES = 20  # one-off allocations, the tracker's first tracks
 STAGES = ("odometry", "perception", "memory", "tracking", "plan", "actor", "shield", "limits")
-TARGETS = {"cycle_p99_ms": 5.0, "ready_s": 2.0, "rss_at_ready_mb": 200.0}
+TARGETS = {"cycle_p99_ms": 5.0, "ready_s": 2.0, "rss_at_ready_mb": 200.0,
+           "recorder_added_p99_ms": 0.3}
 
 
 def _replayed(path: Path, frames: int, fps: float) -> Iterator[DepthFrame]:
@@ -108,9 +111,12 @@ class _Wheels:
 
 
 def time_cycles(loaded: LoadedConfig, recording: Path, frames: int, fps: float, policy: Policy,
-                cycles: int) -> dict[str, Any]:
+                cycles: int, paced: bool = False, recorder: Recorder | None = None
+                ) -> dict[str, Any]:
     """`cycles` timed cycles (after WARMUP_CYCLES) on the recording: per-cycle and per-stage
-    times in ms, the floor check apart, and how many cycles held or decided."""
+    times in ms, the floor check apart, and how many cycles held or decided. `paced`: each
+    cycle starts a control period after the previous one, as in the loop (the slack is where
+    the recorder's thread writes); `recorder`: hand it every cycle, as the loop does."""
     cfg = loaded.config
     job = SafeMoveJob(GOAL_ODOM, cfg, policy, time.monotonic)
     pipeline = Pipeline(cfg, loaded.calibration, job)
@@ -118,9 +124,11 @@ def time_cycles(loaded: LoadedConfig, recording: Path, frames: int, fps: float, 
     wheels = _Wheels(loaded, frames, fps)
     times: dict[str, list[float]] = {k: [] for k in ("cycle", *STAGES)}
     floor_checks: list[float] = []
+    offers: list[float] = []
     held = decided = 0
     gc.collect()
     gc.disable()
+    start = time.perf_counter()
     try:
         with closing(_replayed(recording, frames, fps)) as replay:
             pending = next(replay)
@@ -141,7 +149,14 @@ def time_cycles(loaded: LoadedConfig, recording: Path, frames: int, fps: float, 
                 t3 = time.perf_counter()
                 checked = pipeline.check_floor() is not None
                 t4 = time.perf_counter()
+                if recorder is not None:
+                    recorder.offer(CycleRecord(t, "RUNNING", increments, tuple(arrived),
+                                               pipeline.perceived_now, inp.feedback_t, out,
+                                               job.trace() if out.hold is None else None))
+                    offers.append(time.perf_counter() - t4)
                 gc.collect(0)
+                if paced:
+                    time.sleep(max(0.0, start + (k + 1) * period - time.perf_counter()))
                 if k < WARMUP_CYCLES:
                     continue
                 held += out.hold is not None
@@ -163,8 +178,30 @@ def time_cycles(loaded: LoadedConfig, recording: Path, frames: int, fps: float, 
         "cycle_ms": _rounded(ms_stats(times.pop("cycle"))),
         "stage_ms": {k: _rounded(ms_stats(v)) for k, v in times.items() if v},
         "floor_check_ms": _rounded(ms_stats(floor_checks)) if floor_checks else None,
+        "record_offer_ms": _rounded(ms_stats(offers[WARMUP_CYCLES:])) if offers else None,
         "control_period_ms": round(1e3 * period, 3),
     }
+
+
+def _recorder_cost(loaded: LoadedConfig, recording: Path, frames: int, fps: float,
+                   policy: Policy, cycles: int, directory: Path) -> dict[str, Any]:
+    """Paced cycles without, then with the flight recorder; the p99 it adds and what it wrote."""
+    cfg = loaded.config
+    plain = time_cycles(loaded, recording, frames, fps, policy, cycles, paced=True)
+    recorder = Recorder(directory, cfg.recorder, loaded.calibration.camera,
+                        cfg.perception.decimation, {"bench": "cycle"})
+    recorder.start()
+    try:
+        recorded = time_cycles(loaded, recording, frames, fps, policy, cycles, paced=True,
+                               recorder=recorder)
+    finally:
+        recorder.stop()
+    minutes = (WARMUP_CYCLES + cycles) / cfg.loop.control_hz / 60.0
+    p99 = (plain["cycle_ms"]["p99"], recorded["cycle_ms"]["p99"])
+    return {"cycle_ms_without": plain["cycle_ms"], "cycle_ms_with": recorded["cycle_ms"],
+            "offer_ms": recorded["record_offer_ms"], "added_p99_ms": round(p99[1] - p99[0], 3),
+            "written": recorder.summary(),
+            "mb_per_minute": round(recorder.counts["bytes"] / 1e6 / minutes, 2)}
 
 
 def _rounded(stats: dict[str, float]) -> dict[str, float]:
@@ -175,9 +212,11 @@ def _target(value: float, key: str) -> dict[str, Any]:
     return {"value": value, "target": TARGETS[key], "met": value <= TARGETS[key]}
 
 
-def bench_cycle(cycles: int, frames: int, model: Path | None, startup_runs: int
-                ) -> dict[str, Any]:
-    """The whole benchmark (module docs); `startup_runs` 0: no start-up figures."""
+def bench_cycle(cycles: int, frames: int, model: Path | None, startup_runs: int,
+                record_too: bool = False) -> dict[str, Any]:
+    """The whole benchmark (module docs); `startup_runs` 0: no start-up figures; `record_too`:
+    then the recorder's cost, paced at the control rate, without and with the flight recorder
+    in the same run."""
     loaded = load_config(None, [])
     cfg = loaded.config
     fps = float(cfg.depth.fps)
@@ -201,6 +240,11 @@ def bench_cycle(cycles: int, frames: int, model: Path | None, startup_runs: int
         # same-run reference: the share of the control period (transfers across machines)
         result["cycle_p99_share_of_period"] = round(p99 / timed["control_period_ms"], 4)
         targets = {"cycle_p99_ms": _target(p99, "cycle_p99_ms")}
+        if record_too:
+            result["recorder"] = _recorder_cost(loaded, recording, frames, fps, policy, cycles,
+                                                Path(tmp) / "recordings")
+            targets["recorder_added_p99_ms"] = _target(
+                result["recorder"]["added_p99_ms"], "recorder_added_p99_ms")
         if startup_runs:
             startup = bench_startup(startup_runs, "safemove", model)
             result["startup"] = startup

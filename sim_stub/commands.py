@@ -35,6 +35,8 @@ def add_demo(p: argparse.ArgumentParser) -> None:
     p.add_argument("--planner", choices=("safemove", "dwa"), default="safemove",
                    help="safemove (default): the TD3 actor, by default the shipped safemove"
                         " policy; dwa: the DWA baseline (both through the shield)")
+    p.add_argument("--record", type=Path, metavar="DIR",
+                   help="record every cycle to MCAP files in DIR (the flight recorder)")
     add_policy_args(p)
     p.set_defaults(func=demo)
 
@@ -62,6 +64,7 @@ def demo(args: argparse.Namespace) -> int:
         loaded = load_config(args.config, [
             *args.overrides, f"base.port={sim.link}", "depth.source=sim",
             f"depth.sim_socket={sim.depth_socket}",
+            *([f"recorder.directory={args.record}"] if args.record else []),
         ])
         job: Any = (DWAJob(goal, loaded.config, time.monotonic) if model is None
                     else safemove_job(model, goal, loaded.config, time.monotonic))
@@ -203,6 +206,9 @@ def add_bench(p: argparse.ArgumentParser) -> None:
                     help="the actor (default: a random 61-400-300-2 one)")
     bp.add_argument("--startup-runs", type=int_at_least(0), default=3,
                     help="starts of `safemove run --planner safemove` (default 3; 0: none)")
+    bp.add_argument("--record", action="store_true",
+                    help="also the flight recorder's cost: cycles paced at the control rate"
+                         " without and with recording (adds 2 × CYCLES / control_hz seconds)")
     bp = _bench_parser(bsub, "control", "the control cycle with hostile control-socket clients"
                        " (flooding, never reading) against none, in one run", bench_control_run)
     bp.add_argument("--cycles", type=int_at_least(20), default=400,
@@ -265,8 +271,8 @@ def bench_episode_run(args: argparse.Namespace) -> int:
 def bench_cycle_run(args: argparse.Namespace) -> int:
     from sim_stub.bench_cycle import bench_cycle
 
-    return print_figures(bench_cycle(args.cycles, args.frames, args.model, args.startup_runs),
-                         args.json)
+    return print_figures(bench_cycle(args.cycles, args.frames, args.model, args.startup_runs,
+                                     args.record), args.json)
 
 
 def bench_control_run(args: argparse.Namespace) -> int:

@@ -21,6 +21,7 @@ from runtime.config.settings import DEFAULT_CALIBRATION_PATH, DepthConfig, Loade
 from runtime.errors import ConfigError
 from runtime.process.control_server import ControlHandoff, ControlServer
 from runtime.process.loop import ControlLoop, Job, LoopReport
+from runtime.process.recorder import Recorder, recording_directory
 from runtime.process.sdnotify import SystemdNotifier
 
 log = logging.getLogger("safemove")
@@ -91,6 +92,26 @@ def open_depth_source(cfg: DepthConfig, source: str) -> CountedDepthSource | Non
     return LiveD435Source(cfg)
 
 
+def _recorder(loaded: LoadedConfig, job: Job) -> Recorder | None:
+    """The flight recorder where recording is configured (recorder.directory, or systemd's
+    LogsDirectory), with what a reader needs to know about the run in the files' metadata."""
+    directory = recording_directory(loaded.config.recorder)
+    if directory is None:
+        return None
+    import json
+    import socket as _socket
+
+    from runtime.config.settings import render_config
+
+    metadata = {"config_file": str(loaded.config_path),
+                "calibration_file": str(loaded.calibration_path),
+                "job": job.name, "host": _socket.gethostname(),
+                "config": render_config(loaded.config),
+                "job_summary": json.dumps(job.summary(), default=str)}
+    return Recorder(directory, loaded.config.recorder, loaded.calibration.camera,
+                    loaded.config.perception.decimation, metadata)
+
+
 def run_job(loaded: LoadedConfig, job: Job, max_cycles: int | None = None,
             control: tuple[Path, ControlHandoff] | None = None) -> tuple[LoopReport, dict]:
     """Run `job` on the configured base (and depth source) until it ends; returns the loop
@@ -106,10 +127,13 @@ def run_job(loaded: LoadedConfig, job: Job, max_cycles: int | None = None,
     server = None
     if control is not None:
         server = ControlServer(control[0], control[1], loaded.config.limits.v_max)
+    recorder = _recorder(loaded, job)
     loop = ControlLoop(loaded.config, loaded.calibration, link, job, notifier,
                        max_cycles=max_cycles, depth=depth,
-                       control=None if control is None else control[1])
+                       control=None if control is None else control[1], recorder=recorder)
     with on_stop_signals(loop.request_stop):
+        if recorder is not None:
+            recorder.start()
         if server is not None:
             server.start()
         try:
@@ -125,9 +149,13 @@ def run_job(loaded: LoadedConfig, job: Job, max_cycles: int | None = None,
         finally:
             if server is not None:
                 server.stop()
+            if recorder is not None:
+                recorder.stop()
     stats = link.stats().__dict__
     if server is not None:
         stats["control_socket"] = dict(server.counts)
+    if recorder is not None:
+        stats["recorder"] = recorder.summary()
     log.info("base link: %s", stats)
     if depth is not None:
         stats["depth_source"] = {**depth.counts, "digest": getattr(depth, "digest", None)}

@@ -79,6 +79,27 @@ class LoopConfig:
 
 
 @dataclass(frozen=True)
+class RecorderConfig:
+    directory: str = setting(
+        "", "where recordings go; empty = $LOGS_DIRECTORY/recordings when systemd gives the "
+        "service a LogsDirectory (/var/log/safemove/recordings), else no recording")
+    full_depth_every: int = setting(
+        15, "a full depth frame every this many frames the world model reads (15: once a second"
+        " at 15 fps); the decimated image it read is recorded for every one", "frames", min=1,
+        max=10000)
+    file_max_mb: float = setting(100.0, "a file is closed and a new one begun at this size", "MB",
+                                 min=0.1, max=100000.0)
+    file_max_s: float = setting(600.0, "a file is closed and a new one begun at this age", "s",
+                                min=1.0, max=86400.0)
+    total_max_mb: float = setting(
+        2000.0, "all recordings together; the oldest files are deleted to stay under it", "MB",
+        min=0.1, max=1000000.0)
+    queue_cycles: int = setting(
+        40, "cycles waiting for the writer; a cycle offered to a full queue is not recorded"
+        " (counted)", "cycles", min=1, max=10000)
+
+
+@dataclass(frozen=True)
 class RobotConfig:
     radius_m: float = setting(
         0.17, "radius of the disc that covers the robot's footprint (Spark: 0.17 m); the planner"
@@ -117,6 +138,8 @@ class Config:
     limits: LimitsConfig = section(LimitsConfig, "velocity and acceleration limits, applied last")
     control: ControlConfig = section(
         ControlConfig, "the control socket: goals and missions for the service, and its status")
+    recorder: RecorderConfig = section(
+        RecorderConfig, "the flight recorder: every cycle to MCAP files (Foxglove opens them)")
 
     def __post_init__(self) -> None:
         period, radius = 1.0 / self.loop.control_hz, self.robot.radius_m

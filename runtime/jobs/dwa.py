@@ -16,7 +16,7 @@ from runtime.config.settings import Config
 from runtime.perception.world_model import WorldState
 from runtime.planning.planning_step import PlanningStep
 from runtime.planning.stall_recovery import StallRecovery
-from runtime.types import STOP, Odometry, Prepared, Twist
+from runtime.types import STOP, DecisionTrace, Odometry, Prepared, Twist
 
 
 class DWAJob:
@@ -60,6 +60,9 @@ class DWAJob:
 
     def step(self, now: float, odom: Odometry, world: WorldState | None) -> Twist:
         return self.decide(self.prepare(now, odom, world))
+
+    def trace(self) -> DecisionTrace:
+        return self._step.trace()
 
     def summary(self) -> dict[str, Any]:
         return {**self._step.summary(), "stall_escapes": self._recovery.escapes}

@@ -28,7 +28,7 @@ import numpy as np
 from runtime.control.config import ControlConfig
 from runtime.control.protocol import Request, Waypoint, reply
 from runtime.perception.world_model import WorldState
-from runtime.types import STOP, Odometry, Prepared, Twist
+from runtime.types import STOP, DecisionTrace, Odometry, Prepared, Twist
 
 log = logging.getLogger("safemove.mission")
 
@@ -64,6 +64,9 @@ class PlannerJob(Protocol):
 
     def summary(self) -> dict[str, Any]:
         """Its report; 'shield_interventions': counts by kind."""
+
+    def trace(self) -> DecisionTrace:
+        """Its last cycle's decision, for the recorder."""
 
 
 # (goal in odom, arrival radius, speed cap) → the planner job for one waypoint
@@ -294,6 +297,11 @@ class MissionJob:
         if self._job is not None:
             self._shield_kinds.update(self._job.summary().get("shield_interventions", {}))
         self._job = None
+
+    def trace(self) -> DecisionTrace | None:
+        """The current waypoint's planner's last decision (None while idle)."""
+        job = self._job
+        return None if job is None else job.trace()
 
     def summary(self) -> dict[str, Any]:
         """The run's report. 'shield_interventions': by kind, as every planner job reports

@@ -23,12 +23,12 @@ import numpy as np
 from runtime.config.settings import Config
 from runtime.errors import ConfigError
 from runtime.perception.world_model import WorldState
-from runtime.planning.corridor import CorridorConfig, safe_corridor
+from runtime.planning.corridor import Corridor, CorridorConfig, safe_corridor
 from runtime.planning.planning_step import PlanningContext, PlanningStep
 from runtime.policy.actor import Policy
 from runtime.policy.obs_spec import ObservationBuilder, ObsSpec
 from runtime.policy.shipped import variant_of
-from runtime.types import STOP, Odometry, Prepared, Twist
+from runtime.types import STOP, DecisionTrace, Odometry, Prepared, Twist
 
 log = logging.getLogger("safemove.policy")
 
@@ -44,6 +44,7 @@ class SpecObserver:
         self._corridor = (None if cor is None
                           else CorridorConfig(samples=cor.samples, max_width=cor.width_max_m))
         self._builder = ObservationBuilder(spec)
+        self.last_corridor: Corridor | None = None
 
     def observe(self, ctx: PlanningContext, odom: Odometry, world: WorldState) -> np.ndarray:
         """The observation (the builder's vector, reused: copy it to keep it)."""
@@ -51,6 +52,7 @@ class SpecObserver:
         if self._corridor is not None:
             corridor = safe_corridor(ctx.dwa.best_path, world.points_base, ctx.track_pos[:, 1:],
                                      ctx.track_radii, self._corridor)
+        self.last_corridor = corridor
         return self._builder.build(ctx.goal_base, odom.v, odom.omega, world, ctx.dwa, corridor)
 
 
@@ -82,6 +84,8 @@ class SafeMoveJob:
         self._observer = SpecObserver(spec)
         self.nonfinite: Counter[str] = Counter()
         self._last_bad: str | None = None
+        self._last_obs: np.ndarray | None = None  # copies, for the recorder's trace
+        self._last_action: np.ndarray | None = None
 
     @property
     def finished(self) -> bool:
@@ -102,6 +106,8 @@ class SafeMoveJob:
     def prepare(self, now: float, odom: Odometry, world: WorldState | None) -> Prepared:
         """DWA, the corridor and the observation; no context (hold still) when the goal is
         reached, there is no world yet, or odometry or the observation is not finite."""
+        self._last_obs = self._last_action = None
+        self._observer.last_corridor = None
         if not all(map(math.isfinite, (odom.x, odom.y, odom.theta, odom.v, odom.omega))):
             self._safe_stop("odometry", f"non-finite odometry {odom}")
             return Prepared()
@@ -125,6 +131,8 @@ class SafeMoveJob:
             if self._policy is None:
                 raise ValueError("SafeMoveJob without a policy: decide() needs the action")
             action = self._policy.act(prepared.observation)
+        self._last_obs = prepared.observation.copy()
+        self._last_action = np.array(action, dtype=float)
         if not np.all(np.isfinite(action)):
             return self._safe_stop("action", f"non-finite action {np.asarray(action).tolist()}")
         self._last_bad = None
@@ -132,6 +140,10 @@ class SafeMoveJob:
 
     def step(self, now: float, odom: Odometry, world: WorldState | None) -> Twist:
         return self.decide(self.prepare(now, odom, world))
+
+    def trace(self) -> DecisionTrace:
+        return self._planning.trace(observation=self._last_obs, action=self._last_action,
+                                    corridor=self._observer.last_corridor)
 
     def _safe_stop(self, kind: str, reason: str) -> Twist:
         """Brake this cycle; log the first cycle of a streak (the count has them all)."""

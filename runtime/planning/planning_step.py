@@ -25,8 +25,8 @@ from runtime.perception.world_model import WorldState
 from runtime.planning.dwa import DWAConfig, DWAResult, plan
 from runtime.safety.certificate import ShieldConfig, ShieldWorld
 from runtime.safety.limits import LimitsConfig
-from runtime.safety.shield import shield
-from runtime.types import STILL_M_S, Odometry, Twist
+from runtime.safety.shield import ShieldDecision, shield
+from runtime.types import STILL_M_S, DecisionTrace, Odometry, Twist
 
 log = logging.getLogger("safemove.planner")
 
@@ -118,6 +118,8 @@ class PlanningStep:
         self.interventions: Counter[str] = Counter()
         self._last_kind = "passed"
         self.last_intervened = False
+        self.last_context: PlanningContext | None = None  # this cycle's (for the recorder)
+        self.last_decision: ShieldDecision | None = None
 
     def prepare(self, now: float, odom: Odometry, world: WorldState | None,
                 plan_goal: np.ndarray | None = None) -> PlanningContext | None:
@@ -125,6 +127,7 @@ class PlanningStep:
         `plan_goal` (odom): where DWA heads instead of the goal (a stall recovery's escape);
         reaching is always judged on the goal."""
         self.cycles += 1
+        self.last_context = self.last_decision = None
         here = np.array((odom.x, odom.y))
         if float(np.hypot(*(self.goal - here))) <= self.arrival_radius_m:
             self.reached = True
@@ -150,7 +153,9 @@ class PlanningStep:
                          unknown=world.unknown, scan=world.scan, blind_range=world.blind_range,
                          track_ids=tuple(t.id for t in world.tracks if t.confirmed),
                          points_age=max(0.0, now - world.t))
-        return PlanningContext(goal_base, Twist(odom.v, odom.omega), result, pos, std, radii, sw)
+        self.last_context = PlanningContext(goal_base, Twist(odom.v, odom.omega), result, pos, std,
+                                            radii, sw)
+        return self.last_context
 
     def certify(self, command: Twist, ctx: PlanningContext) -> Twist:
         """The shield's decision on `command` (first slowed to the goal's speed cap along the
@@ -162,6 +167,7 @@ class PlanningStep:
                           ctx.shield_world, self._cfg.limits, self._cfg.shield,
                           deadline=self._deadline(self._cfg.shield.candidate_budget_s),
                           now=self._clock)
+        self.last_decision = decision
         self.last_intervened = decision.intervened
         if decision.intervened:
             self.interventions[decision.kind] += 1
@@ -170,6 +176,11 @@ class PlanningStep:
                          decision.reason)
         self._last_kind = decision.kind
         return decision.command
+
+    def trace(self, **decision: Any) -> DecisionTrace:
+        """The last cycle's context and shield decision, with the job's own `decision` parts."""
+        return DecisionTrace(context=self.last_context, shield=self.last_decision,
+                             goal_odom=(float(self.goal[0]), float(self.goal[1])), **decision)
 
     def _deadline(self, budget_s: float) -> float:
         return math.inf if self._clock is None else self._clock() + budget_s

@@ -16,15 +16,17 @@ import math
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Any, Protocol
 
 from runtime.config.settings import Calibration, Config
 from runtime.control.protocol import Request
 from runtime.errors import DeviceError
 from runtime.perception.world_model import WorldState
-from runtime.pipeline import PIPELINE_STAGES, CycleInput, Job, Pipeline
+from runtime.pipeline import PIPELINE_STAGES, CycleInput, CycleResult, Job, Pipeline
 from runtime.process.control_server import MAX_PENDING, ControlHandoff
+from runtime.process.cycle_record import CycleRecord
+from runtime.process.recorder import Recorder
 from runtime.process.sdnotify import SystemdNotifier
 from runtime.process.timing import RateKeeper, RingStats
 from runtime.types import STOP, DepthFrame, Odometry, Twist, WheelIncrement
@@ -93,7 +95,7 @@ class DepthStats:
 
 
 STAGES = ("base_read", "depth_read", *PIPELINE_STAGES, "base_write", "cycle", "floor_check",
-          "control", "gc")
+          "control", "record", "gc")
 GC_FULL_EVERY = 600  # cycles between full collections (30 s at 20 Hz)
 
 
@@ -160,10 +162,12 @@ class ControlLoop:
         depth: DepthInput | None = None,
         wait: Callable[[float], bool] | None = None,
         control: ControlHandoff | None = None,
+        recorder: Recorder | None = None,
     ) -> None:
         """`wait(seconds)`: sleep, True when a stop was requested meanwhile (default: on the
         loop's stop event, so a signal handler ends the sleep at once). `control`: the hand-off
-        of the control socket; the job must then be a CommandedJob."""
+        of the control socket; the job must then be a CommandedJob. `recorder`: the flight
+        recorder, handed every cycle after its command."""
         self._cfg = config
         self._depth = depth
         self._pipeline = Pipeline(config, calibration, job, depth=depth is not None, clock=clock)
@@ -184,6 +188,8 @@ class ControlLoop:
         self._transitions: list[tuple[float, str, str]] = []
         self._rate = RateKeeper(1.0 / config.loop.control_hz, clock, self._wait)
         self._control = control
+        self._recorder = recorder
+        self._applied: list[dict[str, Any]] = []  # control commands applied after this cycle
         self._last_fault: dict[str, Any] | None = None
         self._counters = {"cycles": 0, "degraded": 0, "nonfinite": 0}
 
@@ -322,7 +328,8 @@ class ControlLoop:
             frames = self._drain_depth()
             t2 = clock()
             rec(ch["depth_read"], t2 - t1)
-            out = pipeline.step(CycleInput(t2, increments, frames, self._link.last_feedback_time))
+            inp = CycleInput(t2, increments, frames, self._link.last_feedback_time)
+            out = pipeline.step(inp)
             for stage, seconds in out.stage_s.items():
                 rec(ch[stage], seconds)
             if out.hold is None:
@@ -351,6 +358,11 @@ class ControlLoop:
                 t5_control = clock()
                 rec(ch["control"], t5_control - t5)
                 t5 = t5_control
+            if self._recorder is not None:
+                self._record(inp, out)
+                t5_record = clock()
+                rec(ch["record"], t5_record - t5)
+                t5 = t5_record
             if self._job.finished:
                 break
             if self._max_cycles is not None and counters["cycles"] >= self._max_cycles:
@@ -384,8 +396,21 @@ class ControlLoop:
                 client, request = control.commands.popleft()
             except IndexError:
                 break
-            control.post(client, job.handle(request, now, odom))
+            answer = job.handle(request, now, odom)
+            control.post(client, answer)
+            if self._recorder is not None:
+                self._applied.append({"request": asdict(request), "ok": answer.get("ok")})
         self._publish_status(now, hold)
+
+    def _record(self, inp: CycleInput, out: CycleResult) -> None:
+        """Hand the cycle to the recorder: references only (see flight_messages.CycleRecord)."""
+        assert self._recorder is not None
+        trace = getattr(self._job, "trace", None)
+        applied, self._applied = tuple(self._applied), []
+        self._recorder.offer(CycleRecord(
+            inp.t, self.state.value, tuple(inp.increments), tuple(inp.frames),
+            self._pipeline.perceived_now, inp.feedback_t, out,
+            trace() if trace is not None and out.hold is None else None, applied))
 
     def _publish_status(self, now: float, hold: str | None) -> None:
         if self._control is None:

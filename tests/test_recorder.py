@@ -1,0 +1,222 @@
+"""The flight recorder (runtime.process.recorder): what a file holds (Foxglove's schemas, every
+channel, messages that decode to what the cycle had), rotation and the disk budget, and what a
+full queue or a failing disk costs: cycles not recorded (counted) and one log line, never the
+robot's cycle."""
+
+from __future__ import annotations
+
+import errno
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+from mcap.reader import make_reader
+
+from runtime.config.settings import RecorderConfig, load_config
+from runtime.jobs.dwa import DWAJob
+from runtime.pipeline import Pipeline
+from runtime.process.cycle_record import CycleRecord
+from runtime.process.recorder import Recorder, recording_directory
+from sim_stub.lockstep import LockstepEpisode
+
+pytestmark = pytest.mark.timeout(240)
+
+
+def episode_records(n: int) -> list[CycleRecord]:
+    """`n` real cycles of the DWA job in paper_a, lock-stepped, as the loop hands them over."""
+    loaded = load_config(None, [])
+    ep = LockstepEpisode("paper_a", 3, loaded.config, loaded.calibration, 15.0, True,
+                         "reactive")
+    job = DWAJob(ep.goal_odom, loaded.config, None)
+    pipeline = Pipeline(ep.config, loaded.calibration, job)
+    out = []
+    while len(out) < n and (inp := ep.cycle()) is not None:
+        cycle = pipeline.step(inp)
+        ep.send(cycle.command)
+        out.append(CycleRecord(inp.t, "RUNNING", tuple(inp.increments), tuple(inp.frames),
+                               pipeline.perceived_now, inp.feedback_t, cycle,
+                               job.trace() if cycle.hold is None else None))
+    return out
+
+
+@pytest.fixture(scope="module")
+def records() -> list[CycleRecord]:
+    return episode_records(60)
+
+
+def recorder(tmp_path: Path, **cfg) -> Recorder:
+    loaded = load_config(None, [])
+    return Recorder(tmp_path, RecorderConfig(**cfg), loaded.calibration.camera,
+                    loaded.config.perception.decimation, {"test": "yes"})
+
+
+def wait_written(rec: Recorder, n: int) -> None:
+    deadline = time.monotonic() + 60.0
+    while rec.counts["cycles"] + rec.counts["dropped"] < n and rec.stopped_reason is None:
+        assert time.monotonic() < deadline, rec.counts
+        time.sleep(0.01)
+
+
+def read(path: Path) -> tuple[dict, dict[str, list]]:
+    with path.open("rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        schemas = {s.name: s.encoding for s in summary.schemas.values()}
+        messages: dict[str, list] = {}
+        for _schema, channel, message in reader.iter_messages():
+            messages.setdefault(channel.topic, []).append(message.data)
+    return schemas, messages
+
+
+def test_a_file_holds_every_channel_in_foxglove_schemas(tmp_path, records):
+    rec = recorder(tmp_path, full_depth_every=5)
+    rec.start()
+    for i, r in enumerate(records):
+        rec.offer(r)
+        wait_written(rec, i + 1)  # as at 20 Hz: the writer keeps up between cycles
+    rec.stop()
+    assert rec.stopped_reason is None and rec.counts["dropped"] == 0
+    [path] = tmp_path.glob("safemove-*.mcap")
+    schemas, messages = read(path)
+    assert schemas == {"foxglove.FrameTransform": "protobuf", "foxglove.RawImage": "protobuf",
+                       "foxglove.PointCloud": "protobuf", "foxglove.SceneUpdate": "protobuf",
+                       "safemove.Cycle": "jsonschema"}
+    perceived = [r for r in records if r.perceived is not None]
+    assert len(messages["/tf"]) == len(messages["/cycle"]) == len(records)
+    assert len(messages["/tf_static"]) == 1
+    assert len(messages["/camera/depth_decimated"]) == len(perceived)
+    assert len(messages["/camera/depth"]) == -(-len(perceived) // 5)
+    # the decimated image is exactly the pixels the world model read
+    first = perceived[0].perceived
+    assert first is not None
+    d = load_config(None, []).config.perception.decimation
+    img = RawImage.FromString(messages["/camera/depth_decimated"][0])
+    pixels = np.frombuffer(img.data, dtype="<u2").reshape(img.height, img.width)
+    np.testing.assert_array_equal(pixels, first.depth[::d, ::d])
+    assert img.encoding == "16UC1" and img.frame_id == "camera_depth_optical"
+    cloud = PointCloud.FromString(messages["/obstacles"][0])
+    assert cloud.point_stride == 12 and len(cloud.data) == 12 * len(
+        perceived[0].result.world.points_base)
+    # the cycle's decisions, as the cycle made them
+    cycles = [json.loads(m) for m in messages["/cycle"]]
+    for r, c in zip(records, cycles):
+        assert c["t"] == r.t and c["command"] == {"v": r.result.command.v,
+                                                  "omega": r.result.command.omega}
+        assert len(c["increments"]) == len(r.increments)
+    decided = [c for c in cycles if c["dwa"] is not None]
+    assert decided and all(c["shield"]["kind"] in ("passed", "replaced", "turned", "braked")
+                           for c in decided)
+    scenes = [SceneUpdate.FromString(m) for m in messages["/planning"]]
+    assert any(e.id == "plan" and e.lines for s in scenes for e in s.entities)
+
+
+def test_files_rotate_by_size_and_the_oldest_go_to_stay_in_budget(tmp_path, records):
+    rec = recorder(tmp_path, file_max_mb=0.2, total_max_mb=0.6, full_depth_every=1)
+    rec.start()
+    for i, r in enumerate(records * 3):
+        rec.offer(r)
+        wait_written(rec, i + 1)  # the writer keeps up: this test is about files, not drops
+    rec.stop()
+    kept = sorted(tmp_path.glob("safemove-*.mcap"))
+    assert rec.counts["files"] > 3 and rec.counts["deleted"] > 0, rec.summary()
+    assert sum(p.stat().st_size for p in kept) <= 0.6e6 + 0.25e6  # + the file being written
+    for p in kept:  # every file kept is whole: readable to its summary
+        _schemas, messages = read(p)
+        assert "/tf_static" in messages and "/cycle" in messages
+
+
+def test_a_full_disk_stops_recording_with_one_line_and_drops_the_rest(tmp_path, records,
+                                                                      caplog, monkeypatch):
+    rec = recorder(tmp_path)
+    real_open = open
+
+    class FullDisk:
+        """A file on a disk that fills after 100 kB (ENOSPC), as a tiny tmpfs would."""
+
+        def __init__(self, *args, **kwargs) -> None:
+            self._f = real_open(*args, **kwargs)
+
+        def write(self, data) -> int:
+            if self._f.tell() + len(data) > 100_000:
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            return self._f.write(data)
+
+        def __getattr__(self, name):
+            return getattr(self._f, name)
+
+    monkeypatch.setattr("runtime.process.recorder.open", FullDisk, raising=False)
+    caplog.set_level(logging.INFO, "safemove.recorder")
+    rec.start()
+    for i, r in enumerate(records):
+        rec.offer(r)
+        wait_written(rec, i + 1)
+    rec.stop()
+    assert rec.stopped_reason is not None and "No space left on device" in rec.stopped_reason
+    errors = [r for r in caplog.records if r.levelno >= logging.ERROR]
+    assert len(errors) == 1 and "recording stopped (the robot goes on)" in errors[0].message
+    assert rec.counts["cycles"] + rec.counts["dropped"] < len(records) + 1
+    rec.offer(records[0])  # after it stopped: counted, nothing else
+    assert rec.counts["dropped"] >= 1
+
+
+def test_a_full_queue_drops_cycles_instead_of_waiting(tmp_path, records):
+    rec = recorder(tmp_path, queue_cycles=3)
+    # not started: nothing writes, so the queue fills and the rest are dropped at once
+    for r in records[:10]:
+        rec.offer(r)
+    assert rec.counts["dropped"] == 7 and len(rec._queue) == 3
+
+
+def test_recording_directory_from_config_then_systemd_logs_directory(monkeypatch):
+    monkeypatch.delenv("LOGS_DIRECTORY", raising=False)
+    assert recording_directory(RecorderConfig()) is None
+    monkeypatch.setenv("LOGS_DIRECTORY", "/var/log/safemove")
+    assert recording_directory(RecorderConfig()) == Path("/var/log/safemove/recordings")
+    assert recording_directory(RecorderConfig(directory="/data/rec")) == Path("/data/rec")
+
+
+def test_an_unwritable_directory_refuses_the_start_in_one_line(tmp_path, capsys):
+    from runtime.cli.main import main
+
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    code = main(["drive", "--twist", "0", "0", "--duration", "1",
+                 "--set", f"recorder.directory={blocker}/rec", "--set", "base.port=/nonexistent"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "recorder.directory" in err[0], err
+
+
+@pytest.mark.hil
+@pytest.mark.timeout(300)
+def test_a_demo_whose_disk_fills_mid_run_reaches_its_goal(tmp_path):
+    """A real process whose files may not grow past 2 MB (RLIMIT_FSIZE: the kernel refuses the
+    write as a full disk would): the recording stops with one line, the robot drives on to
+    the goal."""
+    import resource
+
+    def small_files() -> None:
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # EFBIG from write(), not a kill
+        resource.setrlimit(resource.RLIMIT_FSIZE, (2_000_000, 2_000_000))
+
+    out = subprocess.run(
+        [sys.executable, "-m", "runtime.cli.main", "demo", "--planner", "dwa",
+         "--record", str(tmp_path / "rec"), "--set", "recorder.full_depth_every=1"],
+        check=False, capture_output=True, text=True, timeout=280, preexec_fn=small_files,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    assert out.returncode == 0, out.stderr[-3000:]
+    report = json.loads(out.stdout.strip().splitlines()[-1])
+    assert report["world"]["status"] == "success"
+    stopped = [line for line in out.stderr.splitlines() if "recording stopped" in line]
+    assert len(stopped) == 1 and "File too large" in stopped[0], stopped
+    assert report["link"]["recorder"]["stopped"] is not None
+    assert "Traceback" not in out.stderr
