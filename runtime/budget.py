@@ -11,19 +11,20 @@ from collections.abc import Callable
 
 
 class TimeBudget:
-    """Deadline bookkeeping for one anytime call; `cut` tells whether it stopped a step."""
+    """Deadline bookkeeping for one anytime call; `cut` tells whether it stopped a step,
+    `allowed` how many steps it let start (with `cut`, what a replay needs to repeat it)."""
 
     def __init__(self, deadline: float, now: Callable[[], float] | None) -> None:
         self.deadline, self.now = deadline, now
         self.last = now() if now is not None else 0.0
         self.cut = False
+        self.allowed = 0
 
     def allows(self, estimate: float) -> bool:
         """Whether a step taking `estimate` seconds may start now (False for good once cut)."""
-        if self.now is None:
-            return True
-        if self.now() + estimate > self.deadline:
+        if self.now is not None and not self.cut and self.now() + estimate > self.deadline:
             self.cut = True
+        self.allowed += not self.cut
         return not self.cut
 
     def lap(self) -> float:
@@ -33,3 +34,18 @@ class TimeBudget:
         t = self.now()
         dt, self.last = t - self.last, t
         return dt
+
+
+class ReplayedBudget(TimeBudget):
+    """A recorded budget again: it allows the steps it allowed then, and cuts where it cut."""
+
+    def __init__(self, allowed: int, cut: bool) -> None:
+        super().__init__(float("inf"), None)
+        self._limit, self._cuts = allowed, cut
+
+    def allows(self, estimate: float) -> bool:
+        if self._cuts and self.allowed >= self._limit:
+            self.cut = True
+            return False
+        self.allowed += 1
+        return True

@@ -133,6 +133,15 @@ class DepthFrame:
     t: float  # seconds (host monotonic; in playback the recorded timestamps)
     frame_number: int
     intrinsics: DepthIntrinsics
+    # `depth` is every decimation-th pixel of the camera's image both ways (a replayed flight
+    # recording holds what the world model read); the intrinsics are the camera's
+    decimation: int = 1
+
+    @property
+    def image_shape(self) -> tuple[int, int]:
+        """The shape `depth` must have: the intrinsics' image, decimated."""
+        d = self.decimation
+        return -(-self.intrinsics.height // d), -(-self.intrinsics.width // d)
 
     def depth_m(self) -> np.ndarray:
         """Depth in metres as float32 (0 stays 0 = invalid)."""
@@ -160,3 +169,4 @@ class DecisionTrace:
     shield: Any = None  # runtime.safety.shield.ShieldDecision
     corridor: Any = None  # runtime.planning.corridor.Corridor
     goal_odom: tuple[float, float] | None = None
+    budgets: dict[str, tuple[int, bool]] | None = None  # per anytime stage: steps allowed, cut

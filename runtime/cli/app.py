@@ -101,12 +101,13 @@ def _recorder(loaded: LoadedConfig, job: Job) -> Recorder | None:
     import json
     import socket as _socket
 
-    from runtime.config.settings import render_config
+    from runtime.config.settings import render_calibration, render_config
 
     metadata = {"config_file": str(loaded.config_path),
                 "calibration_file": str(loaded.calibration_path),
                 "job": job.name, "host": _socket.gethostname(),
                 "config": render_config(loaded.config),
+                "calibration": render_calibration(loaded.calibration),
                 "job_summary": json.dumps(job.summary(), default=str)}
     return Recorder(directory, loaded.config.recorder, loaded.calibration.camera,
                     loaded.config.perception.decimation, metadata)

@@ -82,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
             cfg.control, args.planner,
             lambda goal, tol, speed: _planner_job(goal, cfg, policy, time.monotonic,
                                                   arrival_radius_m=tol, speed_limit=speed),
-            handoff.post_event)
+            handoff.post_event, None if model is None else str(model))
         handoff.status = {"state": "INIT", "mission": job.status()}
         report, link_stats = run_job(loaded, job, control=(socket_path, handoff))
     return finish({**report.as_dict(), "job": job.summary(), "link": link_stats},
@@ -100,6 +100,29 @@ def _planner_job(goal: tuple[float, float], cfg: Config, policy: Policy | None,
     from runtime.jobs.safemove import SafeMoveJob
 
     return SafeMoveJob(goal, cfg, policy, clock, **limits)
+
+
+def add_replay(p: argparse.ArgumentParser) -> None:
+    p.add_argument("log", type=Path, metavar="LOG.mcap", help="a flight recording")
+    p.add_argument("--model", type=Path, metavar="FILE.onnx",
+                   help="the actor, where the recorded file is not on this machine")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="replay with a config key changed (what-if), e.g. --set"
+                        " dwa.weight_heading=0.5 (repeatable)")
+    p.add_argument("--cycles", type=int, default=None, help="replay only the first N cycles")
+    p.add_argument("--json", action="store_true", help="print only the JSON result")
+    p.set_defaults(func=replay)
+
+
+def replay(args: argparse.Namespace) -> int:
+    """Every recorded cycle through today's Pipeline.step; where the commands differ. Exit 0
+    when every command is reproduced, 1 when some differ."""
+    from runtime.cli.output import print_figures
+    from runtime.process.replay import replay as run_replay
+
+    result = run_replay(args.log, args.model, args.cycles, args.overrides)
+    print_figures(result, args.json)
+    return 0 if result["differing_commands"] == 0 else 1
 
 
 def add_drive(p: argparse.ArgumentParser) -> None:

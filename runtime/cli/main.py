@@ -42,6 +42,8 @@ COMMANDS: dict[str, tuple[str, bool, str]] = {
                 "go on with a paused goal"),
     "status": ("runtime.cli.control_commands:add_status", False,
                 "the running service's state, goal, pose and counters (--follow)"),
+    "replay": ("runtime.cli.commands:add_replay", False,
+                "a flight recording through today's pipeline: where the commands differ"),
     "config": ("runtime.cli.commands:add_config", False,
                 "inspect the configuration"),
     "bench": ("sim_stub.commands:add_bench", False,

@@ -64,5 +64,9 @@ class DWAJob:
     def trace(self) -> DecisionTrace:
         return self._step.trace()
 
+    @property
+    def planning(self) -> PlanningStep:
+        return self._step
+
     def summary(self) -> dict[str, Any]:
         return {**self._step.summary(), "stall_escapes": self._recovery.escapes}

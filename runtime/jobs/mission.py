@@ -28,6 +28,7 @@ import numpy as np
 from runtime.control.config import ControlConfig
 from runtime.control.protocol import Request, Waypoint, reply
 from runtime.perception.world_model import WorldState
+from runtime.planning.planning_step import PlanningStep
 from runtime.types import STOP, DecisionTrace, Odometry, Prepared, Twist
 
 log = logging.getLogger("safemove.mission")
@@ -68,6 +69,10 @@ class PlannerJob(Protocol):
     def trace(self) -> DecisionTrace:
         """Its last cycle's decision, for the recorder."""
 
+    @property
+    def planning(self) -> PlanningStep:
+        """Its goal check, DWA and shield (a replay sets their budgets)."""
+
 
 # (goal in odom, arrival radius, speed cap) → the planner job for one waypoint
 PlannerFactory = Callable[[tuple[float, float], float, "float | None"], PlannerJob]
@@ -80,10 +85,12 @@ class MissionJob:
     finished = False  # the service's job never ends by itself
 
     def __init__(self, config: ControlConfig, planner: str, make_planner: PlannerFactory,
-                 emit: Callable[[dict[str, Any]], None]) -> None:
-        """`emit(event)`: hands an event to the control server (non-blocking)."""
+                 emit: Callable[[dict[str, Any]], None], model: str | None = None) -> None:
+        """`emit(event)`: hands an event to the control server (non-blocking); `model`: the
+        actor file of the safemove planner (for the report and a replay)."""
         self._cfg = config
         self.planner = planner
+        self.model = model
         self._make = make_planner
         self._emit = emit
         self.state = "idle"
@@ -298,6 +305,11 @@ class MissionJob:
             self._shield_kinds.update(self._job.summary().get("shield_interventions", {}))
         self._job = None
 
+    @property
+    def planning(self) -> PlanningStep | None:
+        """The current waypoint's planning step (None while idle)."""
+        return None if self._job is None else self._job.planning
+
     def trace(self) -> DecisionTrace | None:
         """The current waypoint's planner's last decision (None while idle)."""
         job = self._job
@@ -309,7 +321,8 @@ class MissionJob:
         kinds = Counter(self._shield_kinds)
         if self._job is not None:
             kinds.update(self._job.summary().get("shield_interventions", {}))
-        return {"planner": self.planner, "goals": self._next_id - 1, "outcomes": self.counts,
+        return {"planner": self.planner, "model": self.model, "goals": self._next_id - 1,
+                "outcomes": self.counts,
                 "shield_interventions": dict(kinds), "shield_changed_cycles": self.interventions,
                 "last_outcome": self.last_outcome}
 

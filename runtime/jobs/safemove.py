@@ -141,6 +141,10 @@ class SafeMoveJob:
     def step(self, now: float, odom: Odometry, world: WorldState | None) -> Twist:
         return self.decide(self.prepare(now, odom, world))
 
+    @property
+    def planning(self) -> PlanningStep:
+        return self._planning
+
     def trace(self) -> DecisionTrace:
         return self._planning.trace(observation=self._last_obs, action=self._last_action,
                                     corridor=self._observer.last_corridor)

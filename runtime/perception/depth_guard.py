@@ -66,11 +66,13 @@ class DepthGuard:
         if not all(math.isfinite(p) for p in params) or min(k.fx, k.fy, k.depth_unit_m) <= 0:
             return "bad_intrinsics", f"intrinsics {k} are not finite and positive"
         depth = frame.depth
-        if not isinstance(depth, np.ndarray) or depth.dtype != np.uint16 or depth.shape != (
-                k.height, k.width):
+        want = frame.image_shape if frame.decimation >= 1 else None
+        if not isinstance(depth, np.ndarray) or depth.dtype != np.uint16 or depth.shape != want:
             return "bad_image", (f"image {getattr(depth, 'dtype', type(depth))}"
                                  f" {getattr(depth, 'shape', '')} is not uint16"
-                                 f" {k.height}x{k.width}")
+                                 f" {k.height}x{k.width}"
+                                 + (f" decimated by {frame.decimation}"
+                                    if frame.decimation != 1 else ""))
         return None
 
     def _summary(self) -> str:

@@ -298,18 +298,23 @@ class Perception:
         self._floor: tuple[bool | None, float, float, int] = (None, math.nan, math.nan, 0)
 
     # ------------------------------------------------------------------ per frame
-    def process(self, depth: np.ndarray) -> PerceptionOutput:
-        """uint16 Z16 depth (H, W) in intrinsics.depth_unit_m -> PerceptionOutput."""
+    def process(self, depth: np.ndarray, decimated: bool = False) -> PerceptionOutput:
+        """uint16 Z16 depth (H, W) in intrinsics.depth_unit_m -> PerceptionOutput.
+        `decimated`: `depth` is already every decimation-th pixel (a replayed recording)."""
         cfg = self.config
         d = self._d
         h, w = self.shape
         intr = self.intrinsics
-        if depth.shape != (intr.height, intr.width):
+        if decimated:
+            if depth.shape != self.shape:
+                raise ValueError(f"decimated depth image {depth.shape} does not match the"
+                                 f" intrinsics decimated by {d} {self.shape}")
+        elif depth.shape != (intr.height, intr.width):
             raise ValueError(f"depth image {depth.shape} does not match the intrinsics "
                              f"({intr.height}, {intr.width})")
         n = cfg.scan_bins
         z2 = self._z.reshape(h, w)
-        src = depth[::d, ::d] if d > 1 else depth
+        src = depth if decimated or d == 1 else depth[::d, ::d]
         np.multiply(src, self._unit, out=z2, casting="unsafe")
         z = self._z
         valid, mask, tmp = self._mask2, self._mask, self._mask3

@@ -73,7 +73,10 @@ class WorldModel:
         if self._perception is None or self._perception.intrinsics != frame.intrinsics:
             self._perception = Perception(frame.intrinsics, self._mount, self._cfg.perception)
         t0 = clock()
-        out = self._perception.process(frame.depth)
+        if frame.decimation not in (1, self._cfg.perception.decimation):
+            raise ValueError(f"frame {frame.frame_number} is decimated by {frame.decimation},"
+                             f" perception.decimation is {self._cfg.perception.decimation}")
+        out = self._perception.process(frame.depth, decimated=frame.decimation > 1)
         t1 = clock()
         at = seen_from if seen_from is not None else odom
         sensor = (at.x, at.y, at.theta)

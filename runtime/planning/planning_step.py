@@ -19,6 +19,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from runtime.budget import ReplayedBudget, TimeBudget
 from runtime.geometry import into_frame
 from runtime.perception.tracking import Track
 from runtime.perception.world_model import WorldState
@@ -120,6 +121,9 @@ class PlanningStep:
         self.last_intervened = False
         self.last_context: PlanningContext | None = None  # this cycle's (for the recorder)
         self.last_decision: ShieldDecision | None = None
+        self.budgets: dict[str, TimeBudget] = {}  # this cycle's, by stage
+        # a replay sets each cycle's recorded (allowed, cut) per stage before the cycle
+        self.replayed_budgets: dict[str, tuple[int, bool]] | None = None
 
     def prepare(self, now: float, odom: Odometry, world: WorldState | None,
                 plan_goal: np.ndarray | None = None) -> PlanningContext | None:
@@ -128,6 +132,7 @@ class PlanningStep:
         reaching is always judged on the goal."""
         self.cycles += 1
         self.last_context = self.last_decision = None
+        self.budgets = {}
         here = np.array((odom.x, odom.y))
         if float(np.hypot(*(self.goal - here))) <= self.arrival_radius_m:
             self.reached = True
@@ -145,7 +150,7 @@ class PlanningStep:
         result = plan(dwa, self._plan_limits, odom.v, odom.omega, goal_base, world.points_base,
                       pos[:, 1:], radii[:, None] + np.minimum(dwa.track_k_sigma * std[:, 1:],
                                                               dwa.track_inflation_cap_m),
-                      deadline=self._deadline(dwa.budget_s), now=self._clock)
+                      budget=self._budget("dwa", dwa.budget_s))
         if not result.admissible_best:
             self.inadmissible += 1
         sw = ShieldWorld(points=world.points_base, track_positions=pos, track_std=std,
@@ -165,8 +170,7 @@ class PlanningStep:
         ok = ctx.dwa.admissible
         decision = shield(command, ctx.state, ctx.dwa.samples[ok], ctx.dwa.total[ok],
                           ctx.shield_world, self._cfg.limits, self._cfg.shield,
-                          deadline=self._deadline(self._cfg.shield.candidate_budget_s),
-                          now=self._clock)
+                          budget=self._budget("shield", self._cfg.shield.candidate_budget_s))
         self.last_decision = decision
         self.last_intervened = decision.intervened
         if decision.intervened:
@@ -180,10 +184,22 @@ class PlanningStep:
     def trace(self, **decision: Any) -> DecisionTrace:
         """The last cycle's context and shield decision, with the job's own `decision` parts."""
         return DecisionTrace(context=self.last_context, shield=self.last_decision,
-                             goal_odom=(float(self.goal[0]), float(self.goal[1])), **decision)
+                             goal_odom=(float(self.goal[0]), float(self.goal[1])),
+                             budgets={k: (b.allowed, b.cut) for k, b in self.budgets.items()},
+                             **decision)
 
-    def _deadline(self, budget_s: float) -> float:
-        return math.inf if self._clock is None else self._clock() + budget_s
+    def _budget(self, stage: str, budget_s: float) -> TimeBudget:
+        """This cycle's budget of `stage` (dwa, shield): on the clock, or the next one a replay
+        recorded; kept in `budgets` for the recorder."""
+        if self.replayed_budgets is not None:
+            # a stage the recording did not run this cycle: the replay has diverged already
+            allowed, cut = self.replayed_budgets.pop(stage, (0, False))
+            budget: TimeBudget = ReplayedBudget(allowed, cut)
+        else:
+            deadline = math.inf if self._clock is None else self._clock() + budget_s
+            budget = TimeBudget(deadline, self._clock)
+        self.budgets[stage] = budget
+        return budget
 
     def summary(self) -> dict[str, Any]:
         return {

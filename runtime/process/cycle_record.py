@@ -22,3 +22,4 @@ class CycleRecord:
     result: Any  # runtime.pipeline.CycleResult
     trace: DecisionTrace | None
     commands: tuple[dict[str, Any], ...] = field(default_factory=tuple)
+    control_t: float | None = None  # when the commands and the hold time were applied

@@ -182,6 +182,17 @@ def _increment(i: WheelIncrement) -> dict[str, Any]:
             "status": int(i.status)}
 
 
+def _frame(f: DepthFrame) -> dict[str, Any]:
+    """A frame that arrived: its stamp and number, the camera's intrinsics, and whether its
+    image had the shape and type the depth guard checks (its pixels are recorded only when the
+    world model read it)."""
+    k = f.intrinsics
+    ok = isinstance(f.depth, np.ndarray) and f.depth.dtype == np.uint16 and (
+        f.depth.shape == f.image_shape)
+    return {"t": f.t, "frame_number": f.frame_number, "image_ok": bool(ok),
+            "intrinsics": [k.width, k.height, k.fx, k.fy, k.cx, k.cy, k.depth_unit_m]}
+
+
 def _finite(x: Any) -> Any:
     """JSON has no NaN or infinity: such a number is recorded as its string ('nan', 'inf')."""
     if isinstance(x, float) and not math.isfinite(x):
@@ -198,15 +209,14 @@ def cycle_json(rec: CycleRecord) -> bytes:
     out: dict[str, Any] = {
         "t": rec.t, "state": rec.state, "hold": r.hold, "feedback_t": rec.feedback_t,
         "increments": [_increment(i) for i in rec.increments],
-        "frames": [{"t": f.t, "frame_number": f.frame_number, "width": f.intrinsics.width,
-                    "height": f.intrinsics.height} for f in rec.frames],
+        "frames": [_frame(f) for f in rec.frames],
         "perceived": None if rec.perceived is None else rec.perceived.frame_number,
         "odometry": {"x": r.odom.x, "y": r.odom.y, "theta": r.odom.theta, "v": r.odom.v,
                      "omega": r.odom.omega},
         "target": _twist(r.target), "command": _twist(r.command), "nonfinite": r.nonfinite,
         "stage_ms": {k: 1e3 * v for k, v in r.stage_s.items()},
         "shield": None, "dwa": None, "observation": None, "action": None,
-        "commands": list(rec.commands),
+        "commands": list(rec.commands), "control_t": rec.control_t, "budgets": None,
     }
     tr = rec.trace
     if tr is not None:
@@ -221,6 +231,8 @@ def cycle_json(rec: CycleRecord) -> bytes:
                           "budget_cut": bool(dwa.budget_cut),
                           "admissible": int(np.count_nonzero(dwa.admissible)),
                           "goal_base": [float(g) for g in tr.context.goal_base]}
+        if tr.budgets is not None:
+            out["budgets"] = {k: list(v) for k, v in tr.budgets.items()}
         if tr.observation is not None:
             out["observation"] = [float(v) for v in tr.observation]
         if tr.action is not None:

@@ -190,6 +190,7 @@ class ControlLoop:
         self._control = control
         self._recorder = recorder
         self._applied: list[dict[str, Any]] = []  # control commands applied after this cycle
+        self._control_t: float | None = None
         self._last_fault: dict[str, Any] | None = None
         self._counters = {"cycles": 0, "degraded": 0, "nonfinite": 0}
 
@@ -389,6 +390,7 @@ class ControlLoop:
         snapshot. Nothing here waits: the hand-off is deques and one assignment."""
         control, job, odom = self._control, self._commanded, self.odometry
         assert control is not None
+        self._control_t = now
         if hold is not None:
             job.held(now, hold, odom)
         for _ in range(MAX_PENDING):
@@ -410,7 +412,8 @@ class ControlLoop:
         self._recorder.offer(CycleRecord(
             inp.t, self.state.value, tuple(inp.increments), tuple(inp.frames),
             self._pipeline.perceived_now, inp.feedback_t, out,
-            trace() if trace is not None and out.hold is None else None, applied))
+            trace() if trace is not None and out.hold is None else None, applied,
+            self._control_t))
 
     def _publish_status(self, now: float, hold: str | None) -> None:
         if self._control is None:

@@ -50,15 +50,18 @@ class ShieldDecision:
 
 def shield(cmd: Twist, state: Twist, candidates: np.ndarray, costs: np.ndarray | None,
            world: ShieldWorld, limits: LimitsConfig, cfg: ShieldConfig, *,
-           deadline: float = math.inf, now: Callable[[], float] | None = None) -> ShieldDecision:
+           deadline: float = math.inf, now: Callable[[], float] | None = None,
+           budget: TimeBudget | None = None) -> ShieldDecision:
     """Certify `cmd`; pass it unchanged if certified, else the nearest certified candidate
     (candidates (K, 2) of (v, ω), costs (K,) for ties), else brake. Candidates are certified
     CHUNK at a time; with a clock `now`, the search stops when the slowest chunk so far (before
     one is timed: CHUNK_COST times the command's certificate) and the winner's certificate
-    would end past `deadline` (braking needs no search, so the answer is always in time)."""
+    would end past `deadline` (braking needs no search, so the answer is always in time).
+    `budget`: in place of one on `deadline` and `now` (a replay's recorded budget)."""
     wa = world_arrays(world)
     braking = braking_rollout(state, cfg, limits)
-    budget = TimeBudget(deadline, now)
+    if budget is None:
+        budget = TimeBudget(deadline, now)
     cert = certify(cmd, state, world, cfg, limits, wa, braking)
     if cert.ok:
         return ShieldDecision(cmd, "passed", None, cert)

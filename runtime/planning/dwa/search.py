@@ -45,9 +45,11 @@ def plan(
     *,
     deadline: float = math.inf,
     now: Callable[[], float] | None = None,
+    budget: TimeBudget | None = None,
 ) -> DWAResult:
-    """One planning call (see the module docs for frames, cost, admissibility and budget)."""
-    clock = TimeBudget(deadline, now)
+    """One planning call (see the module docs for frames, cost, admissibility and budget).
+    `budget`: in place of one on `deadline` and `now` (a replay's recorded budget)."""
+    clock = budget if budget is not None else TimeBudget(deadline, now)
     prep = prepare(cfg, lim, v0, omega0, points)
     steps = prep.steps
     if obs_pos is None:
