@@ -90,7 +90,8 @@ def test_service_takes_a_mission_and_a_cancel(tmp_path, planner):
                 [sys.executable, "-m", "runtime.cli.main", "run",
                  "--set", f"control.planner={planner}", "--set", f"control.socket={sock}", "--set", f"base.port={sim.link}",
                  "--set", "depth.source=sim", "--set", f"depth.sim_socket={sim.depth_socket}",
-                 "--set", "loop.stats_interval_s=5"],
+                 "--set", "loop.stats_interval_s=5",
+                 "--set", f"recorder.directory={tmp_path / 'rec'}"],
                 stdout=subprocess.PIPE, stderr=err, text=True,
                 env={**os.environ, "PYTHONUNBUFFERED": "1"})
         try:
@@ -156,4 +157,12 @@ def test_service_takes_a_mission_and_a_cancel(tmp_path, planner):
     assert report["job"]["outcomes"] == {"reached": 1, "cancelled": 1, "preempted": 0,
                                          "failed": 0}
     assert report["job"]["planner"] == planner
+    # the flight recording of the whole service run replays bit for bit: the mission's
+    # commands are applied at the cycles they were, the planners' budgets spent as they were
+    from runtime.process.replay import replay
+
+    [log] = (tmp_path / "rec").glob("safemove-*.mcap")
+    replayed = replay(log)
+    assert replayed["job"] == "mission" and replayed["cycles"] > 200
+    assert replayed["differing_commands"] == 0, replayed
     assert f"mission request 1 from uid {os.getuid()} pid" in stderr  # SO_PEERCRED, logged
