@@ -1,6 +1,7 @@
 """The commands of the tools around the runtime: the simulator (`sim`, `demo`, `record`,
-`base-emulator`), evaluation, soak runs, benchmarks, training and export (whose parity check
-uses simulated observations). `safemove` imports this module only to run one of them."""
+`base-emulator`), evaluation, the picture of a flight recording (`plot`), soak runs,
+benchmarks, training and export (whose parity check uses simulated observations). `safemove`
+imports this module only to run one of them."""
 
 from __future__ import annotations
 
@@ -342,11 +343,27 @@ def add_eval(p: argparse.ArgumentParser) -> None:
     p.add_argument("--jobs", type=int_at_least(1), default=1,
                    help="worker processes (default 1)")
     _add_episode_args(p, crowd="scenario")
+    p.add_argument("--record", type=Path, metavar="DIR",
+                   help="a flight recording of every episode in DIR (<scenario>-seed<N>-….mcap:"
+                        " open it in Foxglove, `safemove replay` or `safemove plot` it)")
     p.add_argument("--plots", type=Path, metavar="DIR",
                    help="also draw every episode's path per scenario and the outcome rates as"
                         " PNG files into DIR (created if missing; needs matplotlib)")
     p.add_argument("--json", action="store_true", help="print only the JSON result")
     p.set_defaults(func=eval_run)
+
+
+def _record_dir(directory: Path) -> Path:
+    """eval --record's directory, created and checked before any episode runs."""
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        probe = directory / ".safemove-record-probe"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as exc:
+        raise UserError(f"eval --record: cannot write into {directory}:"
+                        f" {exc.strerror or exc}") from None
+    return directory.resolve()
 
 
 def _plots_dir(directory: Path) -> Path:
@@ -384,7 +401,8 @@ def eval_run(args: argparse.Namespace) -> int:
         raise UserError(f"eval: --fps must be in (0, 90], got {args.fps}")
     plots = None if args.plots is None else _plots_dir(args.plots)
     settings = EvalSettings(args.planner, args.config, tuple(args.overrides), model,
-                            args.fps, args.noise, args.crowd, trajectories=plots is not None)
+                            args.fps, args.noise, args.crowd, trajectories=plots is not None,
+                            record=None if args.record is None else _record_dir(args.record))
 
     counts: dict[str, int] = {}
 
@@ -419,6 +437,37 @@ def eval_run(args: argparse.Namespace) -> int:
         for path in plot_eval(result, trajectories, plots):
             print(f"eval: wrote {path}", file=sys.stderr)
     return 0
+
+
+def add_plot(p: argparse.ArgumentParser) -> None:
+    p.add_argument("log", type=Path, metavar="LOG.mcap", help="a flight recording")
+    p.add_argument("-o", "--output", type=Path, required=True, metavar="OUT.png",
+                   help="the PNG file to write (its folder must exist)")
+    p.add_argument("--json", action="store_true", help="print only the JSON summary")
+    p.set_defaults(func=plot_run)
+
+
+def plot_run(args: argparse.Namespace) -> int:
+    """A picture of one flight recording: the path, the remembered obstacles, the people and
+    the plans in odom; speed, shield interventions and stage times against time."""
+    import os
+
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        raise UserError("plot: matplotlib is not installed; install it with"
+                        " pip install 'safemove-rl[plots]'") from None
+    out = args.output.expanduser()
+    folder = out.parent if str(out.parent) else Path(".")
+    if out.is_dir():
+        raise UserError(f"plot: {out} is a directory, not a file")
+    if not folder.is_dir():
+        raise UserError(f"plot: cannot write {out}: {folder} is not a directory")
+    if not os.access(folder, os.W_OK) or (out.exists() and not os.access(out, os.W_OK)):
+        raise UserError(f"plot: cannot write {out}: permission denied")
+    from sim_stub.log_plot import plot_log
+
+    return print_figures(plot_log(args.log.expanduser(), out), args.json)
 
 
 def add_sim(p: argparse.ArgumentParser) -> None:

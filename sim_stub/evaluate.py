@@ -24,7 +24,7 @@ import logging
 from array import array
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +33,8 @@ import numpy as np
 from runtime.config.settings import LoadedConfig, load_config
 from runtime.pipeline import Pipeline
 from runtime.policy.shipped import variant_of
+from runtime.process.cycle_record import CycleRecord
+from runtime.process.recorder import Recorder, recording_metadata
 from sim_stub.lockstep import LockstepEpisode
 from sim_stub.scenario import load_scenario
 
@@ -51,6 +53,7 @@ class EvalSettings:
     noise: bool
     crowd: str = "scenario"  # scenario | reactive | oblivious: whether agents see the robot
     trajectories: bool = False  # keep each episode's Trajectory (for --plots)
+    record: Path | None = None  # a flight recording of each episode in this directory
 
 
 @dataclass(frozen=True)
@@ -112,6 +115,9 @@ def run_episode(scenario_name: str, seed: int, settings: EvalSettings) -> Episod
                               settings.fps, settings.noise, settings.crowd)
     job = make_job(settings, episode.goal_odom, loaded)
     pipeline = Pipeline(episode.config, loaded.calibration, job)
+    recorder = None
+    if settings.record is not None:
+        recorder = _episode_recorder(settings.record, scenario_name, seed, loaded, episode, job)
     job_s: list[float] = []
     robot = episode.world.robot  # the world's ground truth, updated in place
     xy: array[float] | None = array("f", (robot.x, robot.y)) if settings.trajectories else None
@@ -121,7 +127,14 @@ def run_episode(scenario_name: str, seed: int, settings: EvalSettings) -> Episod
         cycle = pipeline.step(inp)
         job_s.append(cycle.stage_s["job"])
         episode.send(cycle.command)
+        if recorder is not None:
+            recorder.offer(CycleRecord(inp.t, "DEGRADED" if cycle.hold else "RUNNING",
+                                       tuple(inp.increments), tuple(inp.frames),
+                                       pipeline.perceived_now, inp.feedback_t, cycle,
+                                       job.trace() if cycle.hold is None else None))
         episode.looking = not job.finished
+    if recorder is not None:
+        recorder.stop()
     world = episode.world
     out = world.outcome
     summary = job.summary()
@@ -143,6 +156,23 @@ def run_episode(scenario_name: str, seed: int, settings: EvalSettings) -> Episod
         cycles=episode.cycles,
         job_p99_ms=float(np.percentile(1e3 * np.array(job_s), 99)) if job_s else 0.0,
         trajectory=trajectory)
+
+
+def _episode_recorder(directory: Path, scenario: str, seed: int, loaded: LoadedConfig,
+                      episode: LockstepEpisode, job: Any) -> Recorder:
+    """One file per episode, `<scenario>-seed<N>-….mcap`; the episode waits for the writer
+    rather than lose a cycle (it has no deadline), and its budgets are counts (no clock)."""
+    cfg = episode.config  # the one the episode's pipeline runs (it renders what is read)
+    name = Path(scenario).stem if scenario.endswith((".yaml", ".yml")) else scenario
+    rec_cfg = replace(cfg.recorder, file_max_mb=100000.0, file_max_s=86400.0,
+                      total_max_mb=1000000.0)
+    as_run = replace(loaded, config=cfg)
+    recorder = Recorder(directory, rec_cfg, loaded.calibration.camera,
+                        cfg.perception.decimation,
+                        recording_metadata(as_run, job, scenario=scenario, seed=str(seed)),
+                        prefix=f"{name}-seed{seed}", block=True)
+    recorder.start()
+    return recorder
 
 
 def _run_one(task: tuple[str, int, EvalSettings]) -> EpisodeResult:

@@ -99,3 +99,13 @@ def test_the_command_line(recording, tmp_path, capsys):
     assert main(["replay", str(bad)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "not a readable MCAP file" in err[0], err
+
+
+def test_a_recording_cut_short_replays_what_is_whole(recording, tmp_path):
+    """A full disk or a power cut leaves a file without its index and footer."""
+    cut = tmp_path / "cut.mcap"
+    data = recording.read_bytes()
+    cut.write_bytes(data[: len(data) // 2])
+    whole, half = replay(recording), replay(cut)
+    assert 0 < half["cycles"] < whole["cycles"]
+    assert half["differing_commands"] == 0

@@ -21,7 +21,7 @@ from runtime.config.settings import DEFAULT_CALIBRATION_PATH, DepthConfig, Loade
 from runtime.errors import ConfigError
 from runtime.process.control_server import ControlHandoff, ControlServer
 from runtime.process.loop import ControlLoop, Job, LoopReport
-from runtime.process.recorder import Recorder, recording_directory
+from runtime.process.recorder import Recorder, recording_directory, recording_metadata
 from runtime.process.sdnotify import SystemdNotifier
 
 log = logging.getLogger("safemove")
@@ -98,19 +98,8 @@ def _recorder(loaded: LoadedConfig, job: Job) -> Recorder | None:
     directory = recording_directory(loaded.config.recorder)
     if directory is None:
         return None
-    import json
-    import socket as _socket
-
-    from runtime.config.settings import render_calibration, render_config
-
-    metadata = {"config_file": str(loaded.config_path),
-                "calibration_file": str(loaded.calibration_path),
-                "job": job.name, "host": _socket.gethostname(),
-                "config": render_config(loaded.config),
-                "calibration": render_calibration(loaded.calibration),
-                "job_summary": json.dumps(job.summary(), default=str)}
     return Recorder(directory, loaded.config.recorder, loaded.calibration.camera,
-                    loaded.config.perception.decimation, metadata)
+                    loaded.config.perception.decimation, recording_metadata(loaded, job))
 
 
 def run_job(loaded: LoadedConfig, job: Job, max_cycles: int | None = None,

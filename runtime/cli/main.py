@@ -44,6 +44,9 @@ COMMANDS: dict[str, tuple[str, bool, str]] = {
                 "the running service's state, goal, pose and counters (--follow)"),
     "replay": ("runtime.cli.commands:add_replay", False,
                 "a flight recording through today's pipeline: where the commands differ"),
+    "plot": ("sim_stub.commands:add_plot", False,
+              ("a picture of a flight recording: the path, obstacles and people in odom;"
+               " speed, shield and timings against time")),
     "config": ("runtime.cli.commands:add_config", False,
                 "inspect the configuration"),
     "bench": ("sim_stub.commands:add_bench", False,

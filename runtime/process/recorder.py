@@ -20,12 +20,26 @@ from pathlib import Path
 from typing import IO, Any
 
 from runtime.config.calibration import CameraMount
-from runtime.config.settings import RecorderConfig
+from runtime.config.settings import LoadedConfig, RecorderConfig
 from runtime.process.cycle_record import CycleRecord
 
 log = logging.getLogger("safemove.recorder")
 
-PATTERN = "safemove-*.mcap"
+
+def recording_metadata(loaded: LoadedConfig, job: Any, **extra: str) -> dict[str, str]:
+    """What a reader (and a replay) needs to know about the run: the config and calibration
+    as they were, the job and its starting report (its goal, its actor file)."""
+    import json
+    import socket
+
+    from runtime.config.settings import render_calibration, render_config
+
+    return {"config_file": str(loaded.config_path),
+            "calibration_file": str(loaded.calibration_path),
+            "job": job.name, "host": socket.gethostname(),
+            "config": render_config(loaded.config),
+            "calibration": render_calibration(loaded.calibration),
+            "job_summary": json.dumps(job.summary(), default=str), **extra}
 
 
 def recording_directory(cfg: RecorderConfig) -> Path | None:
@@ -41,8 +55,13 @@ class Recorder:
 
     def __init__(self, directory: Path, cfg: RecorderConfig, mount: CameraMount,
                  decimation: int, metadata: dict[str, str],
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic, *, prefix: str = "safemove",
+                 block: bool = False) -> None:
+        """`prefix`: the files' names begin with it; `block`: `offer` waits for room instead
+        of dropping (a lock-stepped episode, which has no deadline to keep)."""
         self.directory = directory
+        self._prefix = prefix
+        self._block = block
         self._cfg = cfg
         self._mount = mount
         self._decimation = decimation
@@ -66,7 +85,11 @@ class Recorder:
     # --- the cycle's side ---------------------------------------------------------------------
 
     def offer(self, record: CycleRecord) -> None:
-        """Never blocks: a full queue, or a recording that stopped, drops the cycle (counted)."""
+        """Never blocks (unless made to): a full queue, or a recording that stopped, drops the
+        cycle (counted)."""
+        while (self._block and self.stopped_reason is None and self._thread is not None
+               and self._thread.is_alive() and len(self._queue) >= self._cfg.queue_cycles):
+            time.sleep(0.001)
         if self.stopped_reason is not None or len(self._queue) >= self._cfg.queue_cycles:
             self.counts["dropped"] += 1
             return
@@ -166,7 +189,7 @@ class Recorder:
 
         self._make_room()
         stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
-        path = self.directory / f"safemove-{stamp}-{self.counts['files']:04d}.mcap"
+        path = self.directory / f"{self._prefix}-{stamp}-{self.counts['files']:04d}.mcap"
         self._file = open(path, "wb")  # noqa: SIM115 (closed in _close_file)
         self._path = path
         writer = Writer(self._file, compression=CompressionType.LZ4)
@@ -226,7 +249,8 @@ class Recorder:
         """Delete the oldest recordings until a new file of the budget's share fits."""
         budget = self._cfg.total_max_mb * 1e6
         room = min(self._cfg.file_max_mb * 1e6, 0.5 * budget)
-        old = sorted(self.directory.glob(PATTERN), key=lambda p: (p.stat().st_mtime, p.name))
+        old = sorted(self.directory.glob(f"{self._prefix}-*.mcap"),
+                     key=lambda p: (p.stat().st_mtime, p.name))
         used = sum(p.stat().st_size for p in old)
         while old and used + room > budget:
             oldest = old.pop(0)

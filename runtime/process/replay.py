@@ -14,8 +14,6 @@ from __future__ import annotations
 
 import json
 import math
-import struct
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -29,6 +27,7 @@ from runtime.config.settings import Config
 from runtime.control.protocol import Request, Waypoint
 from runtime.errors import UserError
 from runtime.pipeline import CycleInput, Pipeline
+from runtime.process.flight_log import read_flight_log
 from runtime.types import (
     BaseStatus,
     CliffSensor,
@@ -56,38 +55,6 @@ class Divergence:
                 "first_divergence": self.first, "largest_command_difference":
                     {"v": self.largest_dv, "omega": self.largest_domega},
                 "differing_shield_decisions": self.shield_kinds, "examples": self.examples}
-
-
-def _messages(path: Path) -> tuple[dict[str, str], Iterator[tuple[str, bytes]]]:
-    """The recording's metadata and its messages in the order they were written."""
-    from mcap.exceptions import McapError
-    from mcap.reader import make_reader
-
-    try:
-        f = path.open("rb")
-    except OSError as exc:
-        raise UserError(f"{path}: cannot open: {exc.strerror or exc}") from None
-    try:
-        reader = make_reader(f)
-        metadata = next((m.metadata for m in reader.iter_metadata() if m.name == "safemove"),
-                        None)
-    except (McapError, ValueError, EOFError, struct.error) as exc:
-        f.close()
-        raise UserError(f"{path}: not a readable MCAP file ({exc or type(exc).__name__})"
-                        ) from None
-    if metadata is None:
-        f.close()
-        raise UserError(f"{path}: not a SafeMove flight recording (no 'safemove' metadata)")
-
-    def messages() -> Iterator[tuple[str, bytes]]:
-        with f:
-            try:
-                for _schema, channel, message in reader.iter_messages(log_time_order=False):
-                    yield channel.topic, message.data
-            except (McapError, ValueError, EOFError, struct.error):
-                return  # a file cut short (the recording stopped at a full disk): what is whole
-
-    return dict(metadata), messages()
 
 
 def _job(meta: dict[str, str], config: Config, model: Path | None, path: Path) -> Any:
@@ -151,7 +118,7 @@ def replay(path: Path, model: Path | None = None, limit: int | None = None,
            overrides: list[str] | tuple[str, ...] = ()) -> dict[str, Any]:
     """Replay the recording (its first `limit` cycles) on its config with `overrides`
     (KEY=VALUE, as --set: what-if a stage were set otherwise); the divergence report."""
-    meta, messages = _messages(path)
+    meta, messages = read_flight_log(path)
     where = f"{path}: metadata"
     data = yaml.safe_load(meta["config"]) or {}
     for assignment in overrides:
