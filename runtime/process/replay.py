@@ -65,11 +65,13 @@ def _job(meta: dict[str, str], config: Config, model: Path | None, path: Path) -
     summary = json.loads(meta.get("job_summary", "{}"))
     if name in ("dwa", "safemove"):
         goal = tuple(summary["goal_odom"])
-        actor = model or (Path(summary["policy"]["model"]) if name == "safemove" else None)
+        policy = summary.get("policy") or {}
+        actor = model or (_actor(policy["model"], policy.get("variant"))
+                          if name == "safemove" else None)
         return _planner(name, goal, config, actor)
     if name == "mission":
         cfg: ControlConfig = config.control
-        actor = model or (Path(summary["model"]) if summary.get("model") else None)
+        actor = model or (_actor(summary["model"], None) if summary.get("model") else None)
         from runtime.jobs.mission import MissionJob
 
         return MissionJob(cfg, summary["planner"],
@@ -81,6 +83,19 @@ def _job(meta: dict[str, str], config: Config, model: Path | None, path: Path) -
 
         return HoldJob()
     raise UserError(f"{path}: a '{name}' run cannot be replayed (dwa, safemove, mission, hold)")
+
+
+def _actor(model: str, variant: str | None) -> Path:
+    """The recorded actor file; where it is not on this machine, the policy of the same
+    variant that ships with this installation (recorded on another machine or checkout: a
+    shipped file is named for its variant)."""
+    from runtime.policy.shipped import VARIANTS, shipped_model
+
+    path = Path(model)
+    variant = variant or (path.stem if path.parent.name == "models" else None)
+    if not path.is_file() and variant in VARIANTS:
+        return shipped_model(variant, "give --model FILE.onnx")
+    return path
 
 
 def _planner(name: str, goal: Any, config: Config, actor: Path | None, **limits: Any) -> Any:
