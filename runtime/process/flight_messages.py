@@ -53,7 +53,7 @@ CYCLE_SCHEMA = {
         "t": {"type": "number", "description": "cycle time, host monotonic s"},
         "state": {"type": "string"}, "hold": {"type": ["string", "null"]},
         "increments": {"type": "array"}, "frames": {"type": "array"},
-        "target": {"type": "object"}, "command": {"type": "object"},
+        "target": {"type": "object"}, "command": {"type": "object"}, "tracks": {"type": "array"},
         "shield": {"type": ["object", "null"]}, "dwa": {"type": ["object", "null"]},
         "observation": {"type": ["array", "null"]}, "action": {"type": ["array", "null"]},
         "stage_ms": {"type": "object"}, "commands": {"type": "array"},
@@ -182,6 +182,14 @@ def _increment(i: WheelIncrement) -> dict[str, Any]:
             "status": int(i.status)}
 
 
+def _track(tr: Any) -> dict[str, Any]:
+    """A track in odom: position, velocity, radius, its 4×4 covariance (x, y, vx, vy)."""
+    return {"id": tr.id, "x": float(tr.position[0]), "y": float(tr.position[1]),
+            "vx": float(tr.velocity[0]), "vy": float(tr.velocity[1]), "radius": tr.radius,
+            "confirmed": tr.confirmed, "stationary": tr.stationary,
+            "covariance": np.round(np.asarray(tr.covariance, dtype=float), 6).tolist()}
+
+
 def _frame(f: DepthFrame) -> dict[str, Any]:
     """A frame that arrived: its stamp and number, the camera's intrinsics, and whether its
     image had the shape and type the depth guard checks (its pixels are recorded only when the
@@ -215,6 +223,7 @@ def cycle_json(rec: CycleRecord) -> bytes:
                      "omega": r.odom.omega},
         "target": _twist(r.target), "command": _twist(r.command), "nonfinite": r.nonfinite,
         "stage_ms": {k: 1e3 * v for k, v in r.stage_s.items()},
+        "tracks": [] if r.world is None else [_track(tr) for tr in r.world.tracks],
         "shield": None, "dwa": None, "observation": None, "action": None,
         "commands": list(rec.commands), "control_t": rec.control_t, "budgets": None,
     }
@@ -230,7 +239,15 @@ def cycle_json(rec: CycleRecord) -> bytes:
                           "evaluated": int(dwa.evaluated), "refine_rounds": int(dwa.refine_rounds),
                           "budget_cut": bool(dwa.budget_cut),
                           "admissible": int(np.count_nonzero(dwa.admissible)),
-                          "goal_base": [float(g) for g in tr.context.goal_base]}
+                          "goal_base": [float(g) for g in tr.context.goal_base],
+                          # every candidate: (v, ω), its total cost and admissibility (rounded:
+                          # for reading; the replay recomputes them)
+                          "candidates": {
+                              "v": np.round(dwa.samples[:, 0], 4).tolist(),
+                              "omega": np.round(dwa.samples[:, 1], 4).tolist(),
+                              "total": np.round(np.nan_to_num(dwa.total, nan=-1e9,
+                                                              neginf=-1e9), 4).tolist(),
+                              "admissible": dwa.admissible.astype(int).tolist()}}
         if tr.budgets is not None:
             out["budgets"] = {k: list(v) for k, v in tr.budgets.items()}
         if tr.observation is not None:
