@@ -34,6 +34,7 @@ from matplotlib.lines import Line2D
 
 from runtime.errors import UserError
 from runtime.process.flight_log import read_flight_log
+from sim_stub.plots import finish_map
 
 DPI = 120
 MAX_POINTS = 50_000  # obstacle points drawn at most
@@ -241,12 +242,7 @@ def _draw_map(ax: Axes, log: FlightLog) -> None:
                 markeredgecolor="black", markeredgewidth=0.6, linestyle="none", zorder=8)
         handles.append(Line2D([], [], marker="*", markersize=10, color="#2ca02c",
                               markeredgecolor="black", linestyle="none", label="goal"))
-    ax.set_aspect("equal", adjustable="datalim")
-    ax.autoscale_view()
-    ax.margins(0.04)
-    ax.grid(alpha=0.25)
-    ax.set_xlabel("x (m, odom)")
-    ax.set_ylabel("y (m, odom)")
+    finish_map(ax, "odom")
     ax.legend(handles=handles, loc="best", fontsize=7, framealpha=0.8)
 
 

@@ -38,6 +38,16 @@ DPI = 120
 _HATCHES = ("", "//", "..", "xx", "\\\\", "--")
 
 
+
+def finish_map(ax: Axes, frame: str) -> None:
+    """A map's axes: metres in `frame`, equal aspect, a light grid."""
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.autoscale_view()
+    ax.margins(0.03)
+    ax.grid(alpha=0.25)
+    ax.set_xlabel(f"x (m, {frame})")
+    ax.set_ylabel(f"y (m, {frame})")
+
 def planner_label(result: dict[str, Any]) -> str:
     """The planner of an eval result in words: DWA, or the SafeMove actor (variant or file)."""
     if result.get("planner") != "safemove":
@@ -145,12 +155,7 @@ def plot_trajectories(scenario: Scenario,
                                          fill=False, edgecolor=colour, linestyle="--",
                                          linewidth=1.0, zorder=5))
                 people_shown = True
-    ax.set_aspect("equal", adjustable="datalim")
-    ax.autoscale_view()
-    ax.margins(0.03)
-    ax.grid(alpha=0.25)
-    ax.set_xlabel("x (m, world)")
-    ax.set_ylabel("y (m, world)")
+    finish_map(ax, "world")
     n = len(episodes)
     seeds = sorted(int(ep["seed"]) for ep, _ in episodes)
     seed_text = "" if not seeds else (f", seed {seeds[0]}" if len(seeds) == 1

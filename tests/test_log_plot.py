@@ -6,44 +6,22 @@ output that cannot be written, are one line and exit 2."""
 from __future__ import annotations
 
 import json
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+from flight_records import episode_records, wait_written
 from mcap.writer import Writer
 
 from runtime.cli.main import main
 from runtime.config.settings import RecorderConfig, load_config
-from runtime.jobs.dwa import DWAJob
-from runtime.pipeline import Pipeline
-from runtime.process.cycle_record import CycleRecord
 from runtime.process.recorder import Recorder
-from sim_stub.lockstep import LockstepEpisode
 
 pytest.importorskip("matplotlib")
 
 pytestmark = [pytest.mark.sim, pytest.mark.timeout(180)]
 
 CYCLES = 100
-
-
-def episode_records(n: int) -> list[CycleRecord]:
-    """`n` real cycles of the DWA job in paper_a, lock-stepped, as the loop hands them over
-    (as tests/test_recorder.py makes them)."""
-    loaded = load_config(None, [])
-    ep = LockstepEpisode("paper_a", 3, loaded.config, loaded.calibration, 15.0, True,
-                         "reactive")
-    job = DWAJob(ep.goal_odom, loaded.config, None)
-    pipeline = Pipeline(ep.config, loaded.calibration, job)
-    out: list[CycleRecord] = []
-    while len(out) < n and (inp := ep.cycle()) is not None:
-        cycle = pipeline.step(inp)
-        ep.send(cycle.command)
-        out.append(CycleRecord(inp.t, "RUNNING", tuple(inp.increments), tuple(inp.frames),
-                               pipeline.perceived_now, inp.feedback_t, cycle,
-                               job.trace() if cycle.hold is None else None))
-    return out
 
 
 @pytest.fixture(scope="module")
@@ -56,10 +34,7 @@ def recording(tmp_path_factory) -> tuple[Path, int]:
     rec.start()
     for i, r in enumerate(episode_records(CYCLES)):
         rec.offer(r)
-        deadline = time.monotonic() + 60.0  # as at 20 Hz: the writer keeps up between cycles
-        while rec.counts["cycles"] + rec.counts["dropped"] < i + 1:
-            assert rec.stopped_reason is None and time.monotonic() < deadline, rec.counts
-            time.sleep(0.005)
+        wait_written(rec, i + 1)  # as at 20 Hz: the writer keeps up between cycles
     rec.stop()
     assert rec.stopped_reason is None and rec.counts["dropped"] == 0
     [path] = directory.glob("safemove-*.mcap")

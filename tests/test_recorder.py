@@ -12,41 +12,21 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+from flight_records import episode_records, wait_written
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from mcap.reader import make_reader
 
 from runtime.config.settings import RecorderConfig, load_config
-from runtime.jobs.dwa import DWAJob
-from runtime.pipeline import Pipeline
 from runtime.process.cycle_record import CycleRecord
 from runtime.process.recorder import Recorder, recording_directory
-from sim_stub.lockstep import LockstepEpisode
 
 pytestmark = pytest.mark.timeout(240)
-
-
-def episode_records(n: int) -> list[CycleRecord]:
-    """`n` real cycles of the DWA job in paper_a, lock-stepped, as the loop hands them over."""
-    loaded = load_config(None, [])
-    ep = LockstepEpisode("paper_a", 3, loaded.config, loaded.calibration, 15.0, True,
-                         "reactive")
-    job = DWAJob(ep.goal_odom, loaded.config, None)
-    pipeline = Pipeline(ep.config, loaded.calibration, job)
-    out = []
-    while len(out) < n and (inp := ep.cycle()) is not None:
-        cycle = pipeline.step(inp)
-        ep.send(cycle.command)
-        out.append(CycleRecord(inp.t, "RUNNING", tuple(inp.increments), tuple(inp.frames),
-                               pipeline.perceived_now, inp.feedback_t, cycle,
-                               job.trace() if cycle.hold is None else None))
-    return out
 
 
 @pytest.fixture(scope="module")
@@ -58,13 +38,6 @@ def recorder(tmp_path: Path, **cfg) -> Recorder:
     loaded = load_config(None, [])
     return Recorder(tmp_path, RecorderConfig(**cfg), loaded.calibration.camera,
                     loaded.config.perception.decimation, {"test": "yes"})
-
-
-def wait_written(rec: Recorder, n: int) -> None:
-    deadline = time.monotonic() + 60.0
-    while rec.counts["cycles"] + rec.counts["dropped"] < n and rec.stopped_reason is None:
-        assert time.monotonic() < deadline, rec.counts
-        time.sleep(0.01)
 
 
 def read(path: Path) -> tuple[dict, dict[str, list]]:
