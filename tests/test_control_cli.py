@@ -5,6 +5,7 @@ test_hil_mission.py."""
 
 from __future__ import annotations
 
+import json
 import os
 import socket
 import tempfile
@@ -165,4 +166,38 @@ def test_a_refused_request_exits_1(short_dir, capsys):
     finally:
         stop.set()
         t.join()
+        server.stop()
+
+
+def test_status_follow_prints_each_status_until_interrupted(short_dir):
+    """`status --follow --json`: a status line at the asked rate, events as they come; Ctrl-C
+    ends it with exit 0."""
+    import signal
+    import subprocess
+    import sys
+
+    from runtime.process.control_server import ControlHandoff, ControlServer
+
+    handoff = ControlHandoff()
+    handoff.status = {"state": "RUNNING", "cycles": 1, "mission": {"state": "idle"}}
+    server = ControlServer(short_dir / "c.sock", handoff, 0.3)
+    server.start()
+    proc = subprocess.Popen([sys.executable, "-m", "runtime.cli.main", "status", "--follow",
+                             "--json", "--rate", "20", "--socket", str(short_dir / "c.sock")],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None
+        first = json.loads(proc.stdout.readline())
+        assert first["type"] == "status" and first["state"] == "RUNNING"
+        handoff.post_event({"v": 1, "type": "event", "event": "finished", "goal_id": 3,
+                            "outcome": "reached", "reason": "all 1 waypoint(s) reached"})
+        while (message := json.loads(proc.stdout.readline()))["type"] != "event":
+            assert message["type"] == "status"
+        assert message["goal_id"] == 3 and message["outcome"] == "reached"
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=30) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.communicate()
         server.stop()
