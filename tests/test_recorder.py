@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from doubles import FreshFeedbackLink, SimClock
 from flight_records import episode_records, wait_written
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
@@ -24,7 +25,8 @@ from mcap.reader import make_reader
 
 from runtime.config.settings import RecorderConfig, load_config
 from runtime.process.cycle_record import CycleRecord
-from runtime.process.recorder import Recorder, recording_directory
+from runtime.process.recorder import Recorder, recording_directory, recording_metadata
+from runtime.types import DepthFrame, DepthIntrinsics
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -209,3 +211,50 @@ def test_eval_records_each_episode_and_the_recording_replays(tmp_path, capsys):
     replayed = replay(log)
     assert replayed["cycles"] == result["episodes"][0]["cycles"]
     assert replayed["differing_commands"] == 0
+
+
+class SlowCamera:
+    """Unit-test double: a 15 fps camera on the loop's clock seeing open floor 3 m ahead."""
+
+    K = DepthIntrinsics(848, 480, 420.0, 420.0, 424.0, 240.0)
+
+    def __init__(self, clock: SimClock) -> None:
+        self._clock = clock
+        self._last: float | None = None
+        self.sent = 0
+
+    def poll(self) -> DepthFrame | None:
+        now = self._clock()
+        if self._last is not None and now - self._last < 1.0 / 15.0:
+            return None
+        self._last = now
+        self.sent += 1
+        return DepthFrame(np.full((480, 848), 3000, np.uint16), now, self.sent, self.K)
+
+
+def test_a_frame_taken_before_the_first_cycle_is_recorded_with_it(tmp_path):
+    """The loop's start-up admits the first frame before any cycle runs (INIT waits for it);
+    the first cycle, which plans on it, records it, so the recording replays from cycle 0."""
+    from runtime.jobs.dwa import DWAJob
+    from runtime.process.loop import ControlLoop
+    from runtime.process.replay import replay
+    from runtime.process.sdnotify import SystemdNotifier
+
+    loaded = load_config(None, [])
+    clock = SimClock()
+    camera = SlowCamera(clock)
+    job = DWAJob((2.0, 0.0), loaded.config, None)
+    rec = Recorder(tmp_path, RecorderConfig(), loaded.calibration.camera,
+                   loaded.config.perception.decimation, recording_metadata(loaded, job))
+    loop = ControlLoop(loaded.config, loaded.calibration, FreshFeedbackLink(clock), job,
+                       SystemdNotifier(None), clock=clock, max_cycles=12, depth=camera,
+                       wait=clock.wait, recorder=rec)
+    rec.start()
+    loop.run()
+    rec.stop()
+    [path] = tmp_path.glob("safemove-*.mcap")
+    first = json.loads(read(path)[1]["/cycle"][0])
+    assert [f["frame_number"] for f in first["frames"]] == [1]  # taken during start-up
+    assert first["perceived"] == 1 and first["command"]["v"] > 0
+    result = replay(path)
+    assert (result["cycles"], result["differing_commands"]) == (12, 0), result

@@ -190,6 +190,7 @@ class ControlLoop:
         self._control = control
         self._recorder = recorder
         self._applied: list[dict[str, Any]] = []  # control commands applied after this cycle
+        self._startup_depth: DepthFrame | None = None  # see _run_cycles
         self._control_t: float | None = None
         self._last_fault: dict[str, Any] | None = None
         self._counters = {"cycles": 0, "degraded": 0, "nonfinite": 0}
@@ -308,6 +309,8 @@ class ControlLoop:
         cfg = self._cfg
         clock, ch, rec, rate = self._clock, self._ch, self.timings.record, self._rate
         pipeline = self._pipeline
+        # the frame INIT admitted: the first cycle plans on it, so its record must carry it
+        self._startup_depth = pipeline.latest_depth
         gc.collect()
         gc.freeze()  # start-up objects never need scanning again
         gc.disable()  # collections run between cycles, below, never in the middle of one
@@ -409,8 +412,11 @@ class ControlLoop:
         assert self._recorder is not None
         trace = getattr(self._job, "trace", None)
         applied, self._applied = tuple(self._applied), []
+        frames = tuple(inp.frames)
+        if self._startup_depth is not None:
+            frames, self._startup_depth = (self._startup_depth, *frames), None
         self._recorder.offer(CycleRecord(
-            inp.t, self.state.value, tuple(inp.increments), tuple(inp.frames),
+            inp.t, self.state.value, tuple(inp.increments), frames,
             self._pipeline.perceived_now, inp.feedback_t, out,
             trace() if trace is not None and out.hold is None else None, applied,
             self._control_t))
