@@ -187,6 +187,22 @@ def test_ship_installs_the_run_with_its_records(models, tiny_room, tmp_path, cap
     assert shipped.shipped_variants() == ["safemove"]
 
 
+def test_ship_takes_an_evaluation_of_the_run_before_it_moved(models, tmp_path, capsys):
+    """The summary names the actor where training wrote it; an evaluation of that file is the
+    run's, though the run directory was moved (into the repository) since."""
+    run = _run_dir(tmp_path, "safemove")
+    summary = json.loads((run / "summary.json").read_text())
+    summary["actor"] = "/tmp/train/safemove/actor.onnx"
+    (run / "summary.json").write_text(json.dumps(summary))
+    result = tmp_path / "eval.json"
+    result.write_text(json.dumps({"planner": "safemove", "model": summary["actor"],
+                                  "crowd": "scenario", "noise": True, "fps": 15.0,
+                                  "scenarios": {}}))
+    assert main(["ship", str(run), "--eval", str(result)]) == 0
+    assert shipped.shipped_variants() == ["safemove"]
+    assert "actor" not in Policy(models / "safemove.onnx", PolicyConfig()).training
+
+
 @pytest.mark.parametrize("spec_name, eval_model, needle", [
     ("custom", None, "not a shipped variant"),
     ("drl", "other.onnx", "not this run's"),

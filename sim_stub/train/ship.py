@@ -61,13 +61,17 @@ def ship(run_dir: Path, evaluations: list[Path]) -> Path:
     actor = run_dir / "actor.onnx"
     if not actor.is_file():
         raise UserError(f"{actor}: no exported actor in the run directory")
+    # the run's actor where it is now, or where training wrote it (a run directory moved or
+    # copied after its evaluation still names its actor in its summary)
+    actors = {actor.resolve()} | ({Path(summary["actor"]).resolve()}
+                                  if isinstance(summary.get("actor"), str) else set())
     records = []
     for path in evaluations:
         result = _read_json(path)
         if not isinstance(result, dict) or result.get("planner") != "safemove":
             raise UserError(f"{path}: not a `safemove eval --planner safemove --json` result")
         model = result.get("model")
-        if not isinstance(model, str) or Path(model).resolve() != actor.resolve():
+        if not isinstance(model, str) or Path(model).resolve() not in actors:
             raise UserError(f"{path}: evaluates {model}, not this run's {actor}")
         records.append(evaluation_record(result, path))
     target = shipped.MODELS_DIR / f"{variant}.onnx"
