@@ -453,11 +453,27 @@ def _lead_kinds(p: Rollouts, vmax: np.ndarray, wmax: np.ndarray, wa: WorldArrays
     return kk, jj, kind.reshape(len(kk), -1), where.reshape(len(kk), -1)
 
 
-def _margins(cmds: np.ndarray, state: Twist, world: ShieldWorld, wa: WorldArrays,
-             cfg: ShieldConfig, limits: LimitsConfig,
-             braking: tuple[np.ndarray, np.ndarray] | None, explain: bool) -> _Margins:
-    """The tests' margins for finite commands (K, 2) from a finite state (`explain`: every
-    one, else those a decision needs)."""
+@dataclass(slots=True)
+class _Paths:
+    """K commands' rollouts with what every test derives from them (per row, so a subset of
+    rows is tested exactly as it would be among all of them)."""
+
+    p: Rollouts
+    ref: np.ndarray  # (K, N, 2) the braking path at the rows' sample times
+    vmax: np.ndarray  # (K,) the largest |v| and |ω| of the row's phases
+    wmax: np.ndarray
+    slack_c: np.ndarray  # (K,) between-sample slack of the robot's own motion
+    tol_ref: np.ndarray  # (K,) the two rollouts' integration mismatch
+
+    def rows(self, keep: np.ndarray) -> _Paths:
+        p = self.p
+        return _Paths(Rollouts(p.ts[keep], p.pose[keep], p.vs[keep], p.u[keep], p.n[keep],
+                               p.h[keep], p.valid[keep]), self.ref[keep], self.vmax[keep],
+                      self.wmax[keep], self.slack_c[keep], self.tol_ref[keep])
+
+
+def _paths(cmds: np.ndarray, state: Twist, wa: WorldArrays, cfg: ShieldConfig,
+           limits: LimitsConfig, braking: tuple[np.ndarray, np.ndarray] | None) -> _Paths:
     p = rollouts(cmds, state, cfg, limits)
     vmax = np.maximum(abs(state.v), np.abs(p.u[:, 0]))
     wmax = np.maximum(abs(state.omega), np.abs(p.u[:, 1]))
@@ -470,32 +486,58 @@ def _margins(cmds: np.ndarray, state: Twist, world: ShieldWorld, wa: WorldArrays
     if len(wa.points) or len(wa.tracks):
         rt, rxy = braking if braking is not None else braking_rollout(state, cfg, limits)
         ref = np.stack([np.interp(p.ts, rt, rxy[:, 0]), np.interp(p.ts, rt, rxy[:, 1])], axis=2)
-    tracks = (_track_margins(p, ref, vmax, tol_ref, wa, world.track_dt, cfg) if len(wa.tracks)
-              else np.zeros((0, *p.ts.shape)))
-    return _Margins(p.ts, *_point_margins(p, ref, slack_c, tol_ref, wa.points,
-                                          max(world.points_age, 0.0), cfg, explain),
-                    tracks, *_lead_kinds(p, vmax, wmax, wa, cfg))
+    return _Paths(p, ref, vmax, wmax, slack_c, tol_ref)
+
+
+def _margins(cmds: np.ndarray, state: Twist, world: ShieldWorld, wa: WorldArrays,
+             cfg: ShieldConfig, limits: LimitsConfig,
+             braking: tuple[np.ndarray, np.ndarray] | None) -> _Margins:
+    """Every test's margins for finite commands (K, 2) from a finite state."""
+    q = _paths(cmds, state, wa, cfg, limits, braking)
+    p = q.p
+    tracks = (_track_margins(p, q.ref, q.vmax, q.tol_ref, wa, world.track_dt, cfg)
+              if len(wa.tracks) else np.zeros((0, *p.ts.shape)))
+    return _Margins(p.ts, *_point_margins(p, q.ref, q.slack_c, q.tol_ref, wa.points,
+                                          max(world.points_age, 0.0), cfg, True),
+                    tracks, *_lead_kinds(p, q.vmax, q.wmax, wa, cfg))
 
 
 def certify_batch(cmds: np.ndarray, state: Twist, world: ShieldWorld, cfg: ShieldConfig,
                   limits: LimitsConfig | None = None, arrays: WorldArrays | None = None,
                   braking: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """`certify(...).ok` of each of the commands (K, 2) of (v, ω), all in one pass: a
-    certificate's cost is mostly numpy's per-call overhead, which the K commands share, and a
-    decision needs only the pairs of command and point that may be violated."""
+    certificate's cost is mostly numpy's per-call overhead, which the K commands share. A
+    decision needs only the pairs of command and point that may be violated, and only the
+    commands no earlier test failed: people (b) fail most candidates the shield searches
+    when the planner's command failed, so they are tested first, then unseen space (c, d),
+    then points (a)."""
     limits = limits if limits is not None else LimitsConfig()
     cmds = np.asarray(cmds, dtype=float).reshape(-1, 2)
     ok = np.all(np.isfinite(cmds), axis=1) & state.is_finite()
     if not ok.any():
         return ok
     wa = arrays if arrays is not None else world_arrays(world)
-    mg = _margins(cmds[ok], state, world, wa, cfg, limits, braking, explain=False)
-    failed = np.zeros(int(ok.sum()), dtype=bool)
-    failed[mg.point_cmd[mg.point_at[mg.points < 0] // mg.ts.shape[1]]] = True
-    if mg.tracks.size:  # NaN counts as no violation, as argmin finds it in `certify`
-        failed |= mg.tracks.min(axis=(0, 2)) < 0
-    failed[mg.lead_cmd[(mg.lead_kind != 0).any(axis=1)]] = True
-    ok[ok] = ~failed
+    q = _paths(cmds[ok], state, wa, cfg, limits, braking)
+    alive = np.arange(len(q.vmax))  # rows of q no test has failed yet
+    if len(wa.tracks):  # NaN counts as no violation, as argmin finds it in `certify`
+        tracks = _track_margins(q.p, q.ref, q.vmax, q.tol_ref, wa, world.track_dt, cfg)
+        alive = np.flatnonzero(~(tracks.min(axis=(0, 2)) < 0))
+        q = q.rows(alive)
+    if len(alive):
+        lead_cmd, _, lead_kind, _ = _lead_kinds(q.p, q.vmax, q.wmax, wa, cfg)
+        failed = np.zeros(len(alive), dtype=bool)
+        failed[lead_cmd[(lead_kind != 0).any(axis=1)]] = True
+        alive, q = alive[~failed], q.rows(~failed)
+    if len(alive) and len(wa.points):
+        mg_cmd, _, at, points, _, _ = _point_margins(
+            q.p, q.ref, q.slack_c, q.tol_ref, wa.points, max(world.points_age, 0.0), cfg,
+            False)
+        failed = np.zeros(len(alive), dtype=bool)
+        failed[mg_cmd[at[points < 0] // q.p.ts.shape[1]]] = True
+        alive = alive[~failed]
+    passed = np.zeros(int(ok.sum()), dtype=bool)
+    passed[alive] = True
+    ok[ok] = passed
     return ok
 
 
@@ -510,7 +552,7 @@ def certify(cmd: Twist, state: Twist, world: ShieldWorld, cfg: ShieldConfig,
         return Certificate(False, "non-finite command or state", -math.inf, 0.0)
     wa = arrays if arrays is not None else world_arrays(world)
     mg = _margins(np.array([[cmd.v, cmd.omega]], dtype=float), state, world, wa, cfg, limits,
-                  braking, explain=True)
+                  braking)
     ts = mg.ts[0]
     R = cfg.footprint
     best = (math.inf, 0.0)
