@@ -182,7 +182,12 @@ def test_status_follow_prints_each_status_until_interrupted(short_dir):
     handoff.status = {"state": "RUNNING", "cycles": 1, "mission": {"state": "idle"}}
     server = ControlServer(short_dir / "c.sock", handoff, 0.3)
     server.start()
-    proc = subprocess.Popen([sys.executable, "-m", "runtime.cli.main", "status", "--follow",
+    # Ctrl-C as from a terminal: a test run started in the background (`pytest &`) hands its
+    # children SIGINT ignored
+    as_from_a_terminal = ("import runpy, signal; signal.signal(signal.SIGINT,"
+                          " signal.default_int_handler); runpy.run_module('runtime.cli.main',"
+                          " run_name='__main__')")
+    proc = subprocess.Popen([sys.executable, "-c", as_from_a_terminal, "status", "--follow",
                              "--json", "--rate", "20", "--socket", str(short_dir / "c.sock")],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
