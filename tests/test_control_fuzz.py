@@ -31,6 +31,7 @@ import pytest
 from doubles import FreshFeedbackLink
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
+from line_client import WAIT_S, LineClient
 
 from runtime.config.settings import Calibration, Config
 from runtime.jobs.mission import MissionJob
@@ -44,7 +45,6 @@ pytestmark = pytest.mark.timeout(240)
 MIN_MESSAGES = 1000
 EXAMPLES = 400  # clients of 8 to 25 messages each: several thousand messages, several seconds
 CONTROL_CPU_LIMIT_S = 0.005  # the loop thread's work in one control stage, of a 50 ms period
-WAIT_S = 20.0
 
 # --- hostile messages: each a tuple of chunks written one after the other -------------------
 
@@ -237,48 +237,18 @@ class Robot:
         return self.thread.is_alive() and self.loop.state is State.RUNNING
 
 
-class Conn:
-    def __init__(self, path: Path) -> None:
-        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        self.sock.settimeout(WAIT_S)
-        self.sock.connect(str(path))
-        self.buf = b""
-
-    def line(self) -> bytes | None:
-        while b"\n" not in self.buf:
-            try:
-                data = self.sock.recv(1 << 16)
-            except ConnectionResetError:
-                data = b""
-            if not data:
-                return None
-            self.buf += data
-        line, self.buf = self.buf.split(b"\n", 1)
-        return line
-
-    def until_reply(self, rid: str) -> tuple[dict[str, Any] | None, list[dict[str, Any]]]:
-        """Every message until the reply to `rid` (None: the server closed the connection)."""
-        seen = []
-        while (line := self.line()) is not None:
-            msg = json.loads(line)  # whatever the server sends is JSON
-            if msg.get("type") == "reply" and msg.get("id") == rid:
-                return msg, seen
-            seen.append(msg)
-        return None, seen
-
-
 class Subscriber(threading.Thread):
     """Reads the 20 Hz status stream for the whole test."""
 
     def __init__(self, path: Path) -> None:
         super().__init__(name="subscriber", daemon=True)
-        self.conn = Conn(path)
+        self.conn = LineClient(path, hello=False)
         self.conn.sock.sendall(b'{"id": "sub", "type": "subscribe", "rate_hz": 20}\n')
         self.statuses: list[dict[str, Any]] = []
         self.other: list[dict[str, Any]] = []
 
     def run(self) -> None:
-        while (line := self.conn.line()) is not None:
+        while (line := self.conn.recv_line()) is not None:
             msg = json.loads(line)
             (self.statuses if msg["type"] == "status" else self.other).append(msg)
 
@@ -313,7 +283,7 @@ def test_hostile_clients_cannot_move_the_robot_or_delay_its_cycle(robot):
         assert all(m.get("type") in ("hello", "reply", "status") for m in seen), seen
         assert not [m for m in seen if m.get("goal_id") is not None], seen
 
-    def closed(conn: Conn, seen: list[dict[str, Any]] | None = None) -> None:
+    def closed(conn: LineClient, seen: list[dict[str, Any]] | None = None) -> None:
         """The server closed `conn`: that must have been for an over-long line. `seen`: what
         it had sent (None: read it now)."""
         if seen is None:
@@ -329,7 +299,7 @@ def test_hostile_clients_cannot_move_the_robot_or_delay_its_cycle(robot):
     def hostile_client(messages: list[tuple[bytes, ...]]) -> None:
         sent["examples"] += 1
         sentinel = f"sentinel-{sent['examples']}"
-        conn = Conn(robot.path)
+        conn = LineClient(robot.path, hello=False)
         try:
             for chunks in messages:
                 try:
@@ -339,7 +309,7 @@ def test_hostile_clients_cannot_move_the_robot_or_delay_its_cycle(robot):
                         conn.sock.sendall(chunk)
                 except (BrokenPipeError, ConnectionResetError):
                     closed(conn)  # lines run together past 64 KiB: go on as a new client
-                    conn = Conn(robot.path)
+                    conn = LineClient(robot.path, hello=False)
                     continue
                 sent["messages"] += 1
             try:
@@ -360,7 +330,7 @@ def test_hostile_clients_cannot_move_the_robot_or_delay_its_cycle(robot):
     hostile_client()
 
     # the server still answers, and the loop still runs
-    after = Conn(robot.path)
+    after = LineClient(robot.path, hello=False)
     after.sock.sendall(b'{"id": "after", "type": "status"}\n')
     answer, _ = after.until_reply("after")
     after.sock.close()

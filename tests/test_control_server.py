@@ -6,7 +6,6 @@ limit"."""
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import shutil
@@ -19,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from line_client import WAIT_S, LineClient
 
 from runtime.control.protocol import encode, reply
 from runtime.errors import UserError
@@ -32,7 +32,6 @@ from runtime.process.control_server import (
 )
 
 V_MAX = 0.5
-WAIT_S = 20.0  # the limit of every wait: generous, a wait ends as soon as its condition holds
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -43,54 +42,6 @@ def wait_until(condition: Callable[[], object], what: str, limit: float = WAIT_S
         if time.monotonic() > deadline:
             raise AssertionError(f"not within {limit} s: {what}")
         time.sleep(0.005)
-
-
-class Client:
-    """A blocking test client: sends lines, reads JSON lines."""
-
-    def __init__(self, path: Path, hello: bool = True) -> None:
-        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        self.sock.settimeout(WAIT_S)
-        self.sock.connect(str(path))
-        self.buf = b""
-        if hello:
-            assert self.recv()["type"] == "hello"
-
-    def send(self, message: dict[str, Any] | bytes) -> None:
-        data = message if isinstance(message, bytes) else json.dumps(message).encode() + b"\n"
-        self.sock.sendall(data)
-
-    def recv_line(self) -> bytes | None:
-        """One line, or None at the end of the stream (EOF or reset by the server)."""
-        while b"\n" not in self.buf:
-            try:
-                data = self.sock.recv(65536)
-            except ConnectionResetError:
-                data = b""
-            if not data:
-                return None
-            self.buf += data
-        line, self.buf = self.buf.split(b"\n", 1)
-        return line
-
-    def recv(self) -> dict[str, Any]:
-        line = self.recv_line()
-        assert line is not None, "the server closed the connection"
-        return json.loads(line)
-
-    def recv_reply(self, rid: Any) -> dict[str, Any]:
-        """The reply to request `rid`, skipping status messages and events."""
-        while True:
-            message = self.recv()
-            if message["type"] == "reply" and message["id"] == rid:
-                return message
-
-    def request(self, message: dict[str, Any]) -> dict[str, Any]:
-        self.send(message)
-        return self.recv_reply(message.get("id"))
-
-    def close(self) -> None:
-        self.sock.close()
 
 
 class RecordingServer(ControlServer):
@@ -116,10 +67,10 @@ class Served:
         self.path = path
         self.handoff = ControlHandoff()
         self.server = RecordingServer(path, self.handoff, V_MAX)
-        self.clients: list[Client] = []
+        self.clients: list[LineClient] = []
 
-    def connect(self, hello: bool = True) -> Client:
-        c = Client(self.path, hello)
+    def connect(self, hello: bool = True) -> LineClient:
+        c = LineClient(self.path, hello)
         self.clients.append(c)
         return c
 
@@ -323,7 +274,7 @@ def test_more_than_max_pending_commands_are_refused_as_busy(served):
 
 def test_a_client_beyond_the_limit_is_refused(served):
     clients = [served.connect() for _ in range(MAX_CLIENTS)]
-    extra = Client(served.path, hello=False)
+    extra = LineClient(served.path, hello=False)
     r = extra.recv()
     assert r["type"] == "reply" and not r["ok"] and "too many clients (16)" in r["error"]
     assert extra.recv_line() is None
