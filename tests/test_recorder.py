@@ -258,3 +258,41 @@ def test_a_frame_taken_before_the_first_cycle_is_recorded_with_it(tmp_path):
     assert first["perceived"] == 1 and first["command"]["v"] > 0
     result = replay(path)
     assert (result["cycles"], result["differing_commands"]) == (12, 0), result
+
+
+def test_a_goal_given_during_start_up_is_replayed_before_the_first_cycle(tmp_path):
+    """The service takes a goal while it waits for its inputs (INIT); the recording carries
+    that pass of the control socket with the first cycle, so the replay starts as the robot
+    did: already navigating."""
+    from runtime.control.protocol import Request, Waypoint
+    from runtime.jobs.dwa import DWAJob
+    from runtime.jobs.mission import MissionJob
+    from runtime.process.control_server import ControlHandoff
+    from runtime.process.loop import ControlLoop
+    from runtime.process.replay import replay
+    from runtime.process.sdnotify import SystemdNotifier
+
+    loaded = load_config(None, [])
+    cfg = loaded.config
+    clock = SimClock()
+    handoff = ControlHandoff()
+    job = MissionJob(cfg.control, "dwa",
+                     lambda goal, tol, speed: DWAJob(goal, cfg, None, arrival_radius_m=tol,
+                                                     speed_limit=speed),
+                     handoff.post_event)
+    rec = Recorder(tmp_path, RecorderConfig(), loaded.calibration.camera,
+                   cfg.perception.decimation, recording_metadata(loaded, job))
+    loop = ControlLoop(cfg, loaded.calibration, FreshFeedbackLink(clock), job,
+                       SystemdNotifier(None), clock=clock, max_cycles=12,
+                       depth=SlowCamera(clock), wait=clock.wait, control=handoff, recorder=rec)
+    handoff.commands.append((7, Request("goal", "g", (Waypoint(2.0, 0.0),))))
+    rec.start()
+    loop.run()
+    rec.stop()
+    [path] = tmp_path.glob("safemove-*.mcap")
+    first = json.loads(read(path)[1]["/cycle"][0])
+    [init] = first["startup_control"]
+    assert init["hold"].startswith("INIT") and init["commands"][0]["request"]["type"] == "goal"
+    assert first["command"]["v"] > 0  # the first cycle already drove toward the goal
+    result = replay(path)
+    assert (result["cycles"], result["differing_commands"]) == (12, 0), result

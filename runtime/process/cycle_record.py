@@ -23,3 +23,6 @@ class CycleRecord:
     trace: DecisionTrace | None
     commands: tuple[dict[str, Any], ...] = field(default_factory=tuple)
     control_t: float | None = None  # when the commands and the hold time were applied
+    # the first cycle only: the control socket's passes during start-up (INIT) from the first
+    # that applied a command, each {"t", "hold", "commands"}, which a replay applies before it
+    startup_control: tuple[dict[str, Any], ...] = field(default_factory=tuple)

@@ -12,7 +12,8 @@ Channels (frames follow REP 103/105; the app's 3D panel shows them in `odom`):
 - `/cycle` JSON (schema `safemove.Cycle`): time, loop state and hold reason, the wheel
   increments and depth frames that arrived, the target and the limited command, the shield's
   decision and reason, DWA's best sample, counts and budget, the observation and the actor's
-  output, stage times; the control socket's commands applied after the cycle.
+  output, stage times; the control socket's commands applied after the cycle (the first
+  cycle: also its passes during start-up, `startup_control`).
 """
 
 from __future__ import annotations
@@ -226,6 +227,7 @@ def cycle_json(rec: CycleRecord) -> bytes:
         "tracks": [] if r.world is None else [_track(tr) for tr in r.world.tracks],
         "shield": None, "dwa": None, "observation": None, "action": None,
         "commands": list(rec.commands), "control_t": rec.control_t, "budgets": None,
+        "startup_control": list(rec.startup_control),
     }
     tr = rec.trace
     if tr is not None:

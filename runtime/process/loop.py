@@ -191,6 +191,7 @@ class ControlLoop:
         self._recorder = recorder
         self._applied: list[dict[str, Any]] = []  # control commands applied after this cycle
         self._startup_depth: DepthFrame | None = None  # see _run_cycles
+        self._startup_control: list[dict[str, Any]] = []  # see _wait_for_inputs
         self._control_t: float | None = None
         self._last_fault: dict[str, Any] | None = None
         self._counters = {"cycles": 0, "degraded": 0, "nonfinite": 0}
@@ -247,7 +248,13 @@ class ControlLoop:
                 )
             self._link.set_command(STOP, now)
             if self._control is not None:
-                self._serve_control(now, "INIT: waiting for base feedback and depth")
+                why = "INIT: waiting for base feedback and depth"
+                self._serve_control(now, why)
+                if self._recorder is not None and (self._applied or self._startup_control):
+                    # the first cycle's record carries them: a goal given now is replayed now
+                    self._startup_control.append({"t": now, "hold": why,
+                                                  "commands": self._applied})
+                    self._applied = []
             if self._wait(period):
                 return False
         return True
@@ -415,11 +422,12 @@ class ControlLoop:
         frames = tuple(inp.frames)
         if self._startup_depth is not None:
             frames, self._startup_depth = (self._startup_depth, *frames), None
+        startup, self._startup_control = tuple(self._startup_control), []
         self._recorder.offer(CycleRecord(
             inp.t, self.state.value, tuple(inp.increments), frames,
             self._pipeline.perceived_now, inp.feedback_t, out,
             trace() if trace is not None and out.hold is None else None, applied,
-            self._control_t))
+            self._control_t, startup))
 
     def _publish_status(self, now: float, hold: str | None) -> None:
         if self._control is None:

@@ -159,6 +159,8 @@ def replay(path: Path, model: Path | None = None, limit: int | None = None,
         c = json.loads(data)
         frames = [_frame(f, image if f["frame_number"] == c["perceived"] else None, d)
                   for f in c["frames"]]
+        for earlier in c.get("startup_control", ()):  # the service's start-up, before cycle 0
+            _serve(job, earlier["t"], earlier["hold"], earlier["commands"], pipeline.odom)
         planning = getattr(job, "planning", None)
         if planning is not None:
             planning.replayed_budgets = {k: (int(a), bool(b))
@@ -169,17 +171,23 @@ def replay(path: Path, model: Path | None = None, limit: int | None = None,
         pipeline.check_floor()  # as the loop does after each command: its RANSAC draws too
         _compare(report, c, out, job)
         if c["control_t"] is not None:
-            now = _num(c["control_t"])
-            if out.hold is not None:
-                job.held(now, out.hold, out.odom)
-            for applied in c["commands"]:
-                job.handle(_request(applied["request"]), now, out.odom)
+            _serve(job, c["control_t"], out.hold, c["commands"], out.odom)
         report.cycles += 1
         if limit is not None and report.cycles >= limit:
             break
     if report.cycles == 0:
         raise UserError(f"{path}: no recorded cycles")
     return {"log": str(path), "job": meta.get("job"), **report.as_dict()}
+
+
+def _serve(job: Any, t: Any, hold: str | None, commands: list[dict[str, Any]],
+           odom: Any) -> None:
+    """What the loop's control stage did at `t`: the hold time, then the commands applied."""
+    now = _num(t)
+    if hold is not None:
+        job.held(now, hold, odom)
+    for applied in commands:
+        job.handle(_request(applied["request"]), now, odom)
 
 
 def _frame(f: dict[str, Any], image: np.ndarray | None, decimation: int) -> DepthFrame:
