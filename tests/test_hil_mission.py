@@ -91,7 +91,9 @@ def test_service_takes_a_mission_and_a_cancel(tmp_path, planner):
                  "--set", f"control.planner={planner}", "--set", f"control.socket={sock}", "--set", f"base.port={sim.link}",
                  "--set", "depth.source=sim", "--set", f"depth.sim_socket={sim.depth_socket}",
                  "--set", "loop.stats_interval_s=5",
-                 "--set", f"recorder.directory={tmp_path / 'rec'}"],
+                 "--set", f"recorder.directory={tmp_path / 'rec'}",
+                 # the replay below needs every cycle: a loaded machine must not drop one
+                 "--set", "recorder.queue_cycles=10000"],
                 stdout=subprocess.PIPE, stderr=err, text=True,
                 env={**os.environ, "PYTHONUNBUFFERED": "1"})
         try:

@@ -27,7 +27,11 @@ def recording(request, tmp_path_factory) -> Path:
     out_dir = tmp_path_factory.mktemp(f"rec-{request.param}")
     run = subprocess.run(
         [sys.executable, "-m", "runtime.cli.main", "demo", "--planner", request.param,
-         "--record", str(out_dir)], check=False, capture_output=True, text=True, timeout=360,
+         "--record", str(out_dir),
+         # a replay needs every cycle: a loaded machine must not drop one (a full queue's
+         # drops are tests/test_recorder.py's)
+         "--set", "recorder.queue_cycles=10000"],
+        check=False, capture_output=True, text=True, timeout=360,
         env={**os.environ, "PYTHONUNBUFFERED": "1"})
     assert run.returncode in (0, 1), run.stderr[-3000:]  # 1: the world said not success
     [path] = out_dir.glob("safemove-*.mcap")
