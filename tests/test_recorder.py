@@ -296,3 +296,46 @@ def test_a_goal_given_during_start_up_is_replayed_before_the_first_cycle(tmp_pat
     assert first["command"]["v"] > 0  # the first cycle already drove toward the goal
     result = replay(path)
     assert (result["cycles"], result["differing_commands"]) == (12, 0), result
+
+
+class DropsCycle(Recorder):
+    """Unit-test double: a recorder whose queue was full when cycle `drop` was offered."""
+
+    drop = 5
+
+    def offer(self, record: CycleRecord) -> None:
+        if self._offered == self.drop:
+            self._offered += 1
+            self.counts["dropped"] += 1
+            return
+        super().offer(record)
+
+
+def test_a_replay_stops_where_the_recorder_dropped_cycles(tmp_path, caplog):
+    """Each cycle carries its number in the run; the cycles after a gap cannot be compared
+    (their predecessors' inputs are gone): the replay says so and stops there."""
+    from runtime.jobs.dwa import DWAJob
+    from runtime.process.loop import ControlLoop
+    from runtime.process.replay import replay
+    from runtime.process.sdnotify import SystemdNotifier
+
+    loaded = load_config(None, [])
+    clock = SimClock()
+    job = DWAJob((2.0, 0.0), loaded.config, None)
+    rec = DropsCycle(tmp_path, RecorderConfig(), loaded.calibration.camera,
+                     loaded.config.perception.decimation, recording_metadata(loaded, job))
+    loop = ControlLoop(loaded.config, loaded.calibration, FreshFeedbackLink(clock), job,
+                       SystemdNotifier(None), clock=clock, max_cycles=12,
+                       depth=SlowCamera(clock), wait=clock.wait, recorder=rec)
+    rec.start()
+    loop.run()
+    rec.stop()
+    [path] = tmp_path.glob("safemove-*.mcap")
+    seqs = [json.loads(m)["seq"] for m in read(path)[1]["/cycle"]]
+    assert seqs == [0, 1, 2, 3, 4, *range(6, 12)]
+    caplog.set_level("WARNING", logger="safemove.replay")
+    result = replay(path)
+    assert result["gap"] == {"after_cycle": 5, "missing": 1}
+    assert (result["cycles"], result["differing_commands"]) == (5, 0)
+    assert result["first_cycle_of_run"] == 0
+    assert any("dropped 1 cycles after cycle 5" in r.getMessage() for r in caplog.records)

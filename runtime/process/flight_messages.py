@@ -9,7 +9,7 @@ Channels (frames follow REP 103/105; the app's 3D panel shows them in `odom`):
 - `/obstacles` foxglove.PointCloud, the remembered obstacle points in base_link.
 - `/planning` foxglove.SceneUpdate: tracks in odom (discs, velocity arrows, σ rings), DWA's
   best path and the safe corridor in base_link, the goal in odom.
-- `/cycle` JSON (schema `safemove.Cycle`): time, loop state and hold reason, the wheel
+- `/cycle` JSON (schema `safemove.Cycle`): the cycle's number in the run, time, loop state and hold reason, the wheel
   increments and depth frames that arrived, the target and the limited command, the shield's
   decision and reason, DWA's best sample, counts and budget, the observation and the actor's
   output, stage times; the control socket's commands applied after the cycle (the first
@@ -213,10 +213,11 @@ def _finite(x: Any) -> Any:
     return x
 
 
-def cycle_json(rec: CycleRecord) -> bytes:
+def cycle_json(rec: CycleRecord, seq: int) -> bytes:
+    """`seq`: the cycle's number in the run (a gap: cycles the recorder dropped)."""
     r = rec.result
     out: dict[str, Any] = {
-        "t": rec.t, "state": rec.state, "hold": r.hold, "feedback_t": rec.feedback_t,
+        "seq": seq, "t": rec.t, "state": rec.state, "hold": r.hold, "feedback_t": rec.feedback_t,
         "increments": [_increment(i) for i in rec.increments],
         "frames": [_frame(f) for f in rec.frames],
         "perceived": None if rec.perceived is None else rec.perceived.frame_number,
@@ -259,7 +260,7 @@ def cycle_json(rec: CycleRecord) -> bytes:
     return json.dumps(_finite(out), separators=(",", ":")).encode()
 
 
-def cycle_messages(rec: CycleRecord, full_depth: bool, decimation: int
+def cycle_messages(rec: CycleRecord, seq: int, full_depth: bool, decimation: int
                    ) -> Iterator[tuple[str, Message | bytes]]:
     """(topic, message) for one cycle; bytes are the JSON channel's."""
     r = rec.result
@@ -271,4 +272,4 @@ def cycle_messages(rec: CycleRecord, full_depth: bool, decimation: int
     if r.world is not None and rec.perceived is not None:
         yield "/obstacles", _cloud(r.world.points_base, rec.t)
     yield "/planning", _scene(rec)
-    yield "/cycle", cycle_json(rec)
+    yield "/cycle", cycle_json(rec, seq)

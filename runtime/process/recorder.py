@@ -67,7 +67,8 @@ class Recorder:
         self._decimation = decimation
         self._metadata = metadata
         self._clock = clock
-        self._queue: deque[CycleRecord] = deque()
+        self._queue: deque[tuple[int, CycleRecord]] = deque()  # (its number in the run, it)
+        self._offered = 0  # cycles offered, recorded or not: a gap in the numbers is a drop
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -90,10 +91,12 @@ class Recorder:
         while (self._block and self.stopped_reason is None and self._thread is not None
                and self._thread.is_alive() and len(self._queue) >= self._cfg.queue_cycles):
             time.sleep(0.001)
+        seq = self._offered
+        self._offered += 1
         if self.stopped_reason is not None or len(self._queue) >= self._cfg.queue_cycles:
             self.counts["dropped"] += 1
             return
-        self._queue.append(record)
+        self._queue.append((seq, record))
         self._wake.set()
 
     # --- life cycle ------------------------------------------------------------------------
@@ -132,7 +135,7 @@ class Recorder:
                 self._wake.wait(0.5)
                 self._wake.clear()
                 while self._queue and self.stopped_reason is None:
-                    self._write(self._queue.popleft())
+                    self._write(*self._queue.popleft())
                 if self._stop.is_set() and not self._queue:
                     break
                 if self.stopped_reason is not None:
@@ -147,7 +150,7 @@ class Recorder:
         except OSError as exc:
             self._give_up(f"write error: {exc.strerror or exc}")
 
-    def _write(self, rec: CycleRecord) -> None:
+    def _write(self, seq: int, rec: CycleRecord) -> None:
         from runtime.process.flight_messages import cycle_messages
 
         try:
@@ -164,7 +167,7 @@ class Recorder:
                 full = self._frames_read % self._cfg.full_depth_every == 0
                 self._frames_read += 1
             stamp = int(rec.t * 1e9)
-            for topic, message in cycle_messages(rec, full, self._decimation):
+            for topic, message in cycle_messages(rec, seq, full, self._decimation):
                 data = message if isinstance(message, bytes) else message.SerializeToString()
                 self._writer.add_message(self._channels[topic], stamp, data, stamp)
                 time.sleep(0)  # hand the GIL to the control cycle if it is waiting for it

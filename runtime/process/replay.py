@@ -8,11 +8,15 @@ steps the DWA's and the shield's time budgets allowed (replayed exactly, so the 
 do the same work), and the control socket's commands applied after the cycle. Each replayed
 cycle's command is compared with the recorded one, bit for bit: the same code on the same
 inputs reproduces every command; a change to any stage shows where the decisions first differ.
+Each cycle's number in the run tells where the recorder dropped cycles (the replay stops there:
+what follows cannot be compared) and whether the file begins mid-run (a rotated file: the
+replay starts from a fresh pipeline, so it differs until the stages' state has caught up).
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,6 +40,8 @@ from runtime.types import (
     Proximity,
     WheelIncrement,
 )
+
+log = logging.getLogger("safemove.replay")
 
 
 @dataclass
@@ -147,6 +153,8 @@ def replay(path: Path, model: Path | None = None, limit: int | None = None,
     d = config.perception.decimation
     image: np.ndarray | None = None
     report = Divergence()
+    first_seq: int | None = None  # the first cycle's number in the run (None: not recorded)
+    gap: dict[str, int] | None = None
     for topic, data in messages:
         if topic == "/camera/depth_decimated":
             from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
@@ -157,6 +165,14 @@ def replay(path: Path, model: Path | None = None, limit: int | None = None,
         if topic != "/cycle":
             continue
         c = json.loads(data)
+        seq = c.get("seq")  # (recordings before it was recorded have none)
+        if seq is not None:
+            if first_seq is None:
+                first_seq = seq
+            elif seq != first_seq + report.cycles:  # the recorder dropped cycles: what came
+                # after them cannot be compared, their inputs are gone
+                gap = {"after_cycle": report.cycles, "missing": seq - first_seq - report.cycles}
+                break
         frames = [_frame(f, image if f["frame_number"] == c["perceived"] else None, d)
                   for f in c["frames"]]
         for earlier in c.get("startup_control", ()):  # the service's start-up, before cycle 0
@@ -177,7 +193,15 @@ def replay(path: Path, model: Path | None = None, limit: int | None = None,
             break
     if report.cycles == 0:
         raise UserError(f"{path}: no recorded cycles")
-    return {"log": str(path), "job": meta.get("job"), **report.as_dict()}
+    if first_seq:
+        log.warning("%s begins at cycle %d of its run (a file the recorder rotated to): the"
+                    " replay starts from a fresh pipeline, so it differs until its state"
+                    " (odometry, obstacle memory, tracks) has caught up", path, first_seq)
+    if gap is not None:
+        log.warning("%s: the recorder dropped %d cycles after cycle %d: the replay stops"
+                    " there", path, gap["missing"], gap["after_cycle"])
+    return {"log": str(path), "job": meta.get("job"), "first_cycle_of_run": first_seq,
+            "gap": gap, **report.as_dict()}
 
 
 def _serve(job: Any, t: Any, hold: str | None, commands: list[dict[str, Any]],
