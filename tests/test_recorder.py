@@ -232,27 +232,38 @@ class SlowCamera:
         return DepthFrame(np.full((480, 848), 3000, np.uint16), now, self.sent, self.K)
 
 
-def test_a_frame_taken_before_the_first_cycle_is_recorded_with_it(tmp_path):
-    """The loop's start-up admits the first frame before any cycle runs (INIT waits for it);
-    the first cycle, which plans on it, records it, so the recording replays from cycle 0."""
-    from runtime.jobs.dwa import DWAJob
+def recorded_run(tmp_path: Path, job, recorder_cls: type[Recorder] = Recorder,
+                 handoff=None) -> Path:
+    """12 cycles of the loop on simulated time with `job`, recorded: the one file."""
     from runtime.process.loop import ControlLoop
-    from runtime.process.replay import replay
     from runtime.process.sdnotify import SystemdNotifier
 
     loaded = load_config(None, [])
     clock = SimClock()
-    camera = SlowCamera(clock)
-    job = DWAJob((2.0, 0.0), loaded.config, None)
-    rec = Recorder(tmp_path, RecorderConfig(), loaded.calibration.camera,
-                   loaded.config.perception.decimation, recording_metadata(loaded, job))
+    rec = recorder_cls(tmp_path, RecorderConfig(), loaded.calibration.camera,
+                       loaded.config.perception.decimation, recording_metadata(loaded, job))
     loop = ControlLoop(loaded.config, loaded.calibration, FreshFeedbackLink(clock), job,
-                       SystemdNotifier(None), clock=clock, max_cycles=12, depth=camera,
-                       wait=clock.wait, recorder=rec)
+                       SystemdNotifier(None), clock=clock, max_cycles=12,
+                       depth=SlowCamera(clock), wait=clock.wait, control=handoff, recorder=rec)
     rec.start()
     loop.run()
     rec.stop()
     [path] = tmp_path.glob("safemove-*.mcap")
+    return path
+
+
+def dwa_job():
+    from runtime.jobs.dwa import DWAJob
+
+    return DWAJob((2.0, 0.0), load_config(None, []).config, None)
+
+
+def test_a_frame_taken_before_the_first_cycle_is_recorded_with_it(tmp_path):
+    """The loop's start-up admits the first frame before any cycle runs (INIT waits for it);
+    the first cycle, which plans on it, records it, so the recording replays from cycle 0."""
+    from runtime.process.replay import replay
+
+    path = recorded_run(tmp_path, dwa_job())
     first = json.loads(read(path)[1]["/cycle"][0])
     assert [f["frame_number"] for f in first["frames"]] == [1]  # taken during start-up
     assert first["perceived"] == 1 and first["command"]["v"] > 0
@@ -268,28 +279,16 @@ def test_a_goal_given_during_start_up_is_replayed_before_the_first_cycle(tmp_pat
     from runtime.jobs.dwa import DWAJob
     from runtime.jobs.mission import MissionJob
     from runtime.process.control_server import ControlHandoff
-    from runtime.process.loop import ControlLoop
     from runtime.process.replay import replay
-    from runtime.process.sdnotify import SystemdNotifier
 
-    loaded = load_config(None, [])
-    cfg = loaded.config
-    clock = SimClock()
+    cfg = load_config(None, []).config
     handoff = ControlHandoff()
     job = MissionJob(cfg.control, "dwa",
                      lambda goal, tol, speed: DWAJob(goal, cfg, None, arrival_radius_m=tol,
                                                      speed_limit=speed),
                      handoff.post_event)
-    rec = Recorder(tmp_path, RecorderConfig(), loaded.calibration.camera,
-                   cfg.perception.decimation, recording_metadata(loaded, job))
-    loop = ControlLoop(cfg, loaded.calibration, FreshFeedbackLink(clock), job,
-                       SystemdNotifier(None), clock=clock, max_cycles=12,
-                       depth=SlowCamera(clock), wait=clock.wait, control=handoff, recorder=rec)
     handoff.commands.append((7, Request("goal", "g", (Waypoint(2.0, 0.0),))))
-    rec.start()
-    loop.run()
-    rec.stop()
-    [path] = tmp_path.glob("safemove-*.mcap")
+    path = recorded_run(tmp_path, job, handoff=handoff)
     first = json.loads(read(path)[1]["/cycle"][0])
     [init] = first["startup_control"]
     assert init["hold"].startswith("INIT") and init["commands"][0]["request"]["type"] == "goal"
@@ -314,23 +313,9 @@ class DropsCycle(Recorder):
 def test_a_replay_stops_where_the_recorder_dropped_cycles(tmp_path, caplog):
     """Each cycle carries its number in the run; the cycles after a gap cannot be compared
     (their predecessors' inputs are gone): the replay says so and stops there."""
-    from runtime.jobs.dwa import DWAJob
-    from runtime.process.loop import ControlLoop
     from runtime.process.replay import replay
-    from runtime.process.sdnotify import SystemdNotifier
 
-    loaded = load_config(None, [])
-    clock = SimClock()
-    job = DWAJob((2.0, 0.0), loaded.config, None)
-    rec = DropsCycle(tmp_path, RecorderConfig(), loaded.calibration.camera,
-                     loaded.config.perception.decimation, recording_metadata(loaded, job))
-    loop = ControlLoop(loaded.config, loaded.calibration, FreshFeedbackLink(clock), job,
-                       SystemdNotifier(None), clock=clock, max_cycles=12,
-                       depth=SlowCamera(clock), wait=clock.wait, recorder=rec)
-    rec.start()
-    loop.run()
-    rec.stop()
-    [path] = tmp_path.glob("safemove-*.mcap")
+    path = recorded_run(tmp_path, dwa_job(), DropsCycle)
     seqs = [json.loads(m)["seq"] for m in read(path)[1]["/cycle"]]
     assert seqs == [0, 1, 2, 3, 4, *range(6, 12)]
     caplog.set_level("WARNING", logger="safemove.replay")

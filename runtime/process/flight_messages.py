@@ -9,11 +9,11 @@ Channels (frames follow REP 103/105; the app's 3D panel shows them in `odom`):
 - `/obstacles` foxglove.PointCloud, the remembered obstacle points in base_link.
 - `/planning` foxglove.SceneUpdate: tracks in odom (discs, velocity arrows, σ rings), DWA's
   best path and the safe corridor in base_link, the goal in odom.
-- `/cycle` JSON (schema `safemove.Cycle`): the cycle's number in the run, time, loop state and hold reason, the wheel
-  increments and depth frames that arrived, the target and the limited command, the shield's
-  decision and reason, DWA's best sample, counts and budget, the observation and the actor's
-  output, stage times; the control socket's commands applied after the cycle (the first
-  cycle: also its passes during start-up, `startup_control`).
+- `/cycle` JSON (schema `safemove.Cycle`): the cycle's number in the run, time, loop state
+  and hold reason, the wheel increments and depth frames that arrived, the target and the
+  limited command, the shield's decision and reason, DWA's best sample, counts and budget, the
+  observation and the actor's output, stage times; the control socket's commands applied after
+  the cycle (the first cycle: also its passes during start-up, `startup_control`).
 """
 
 from __future__ import annotations

@@ -498,7 +498,7 @@ def _margins(cmds: np.ndarray, state: Twist, world: ShieldWorld, wa: WorldArrays
     tracks = (_track_margins(p, q.ref, q.vmax, q.tol_ref, wa, world.track_dt, cfg)
               if len(wa.tracks) else np.zeros((0, *p.ts.shape)))
     return _Margins(p.ts, *_point_margins(p, q.ref, q.slack_c, q.tol_ref, wa.points,
-                                          max(world.points_age, 0.0), cfg, True),
+                                          max(world.points_age, 0.0), cfg, explain=True),
                     tracks, *_lead_kinds(p, q.vmax, q.wmax, wa, cfg))
 
 
@@ -531,7 +531,7 @@ def certify_batch(cmds: np.ndarray, state: Twist, world: ShieldWorld, cfg: Shiel
     if len(alive) and len(wa.points):
         mg_cmd, _, at, points, _, _ = _point_margins(
             q.p, q.ref, q.slack_c, q.tol_ref, wa.points, max(world.points_age, 0.0), cfg,
-            False)
+            explain=False)
         failed = np.zeros(len(alive), dtype=bool)
         failed[mg_cmd[at[points < 0] // q.p.ts.shape[1]]] = True
         alive = alive[~failed]

@@ -29,12 +29,13 @@ from runtime.safety.certificate import (
 from runtime.safety.limits import LimitsConfig
 from runtime.types import Twist
 
-# Candidates are certified in chunks, nearest first, each twice the one before: a chunk's cost
-# grows far slower than its size (most is numpy's per-call overhead, and a candidate that
+# Candidates are certified in chunks, nearest first, each CHUNK_GROWTH times the one before: a
+# chunk's cost grows far slower than its size (most is numpy's per-call overhead, and a candidate that
 # fails the people test skips the others), the search stops at the first chunk with a
 # certified candidate, and the time budget is checked between chunks.
 CHUNK = 8  # the first chunk
 CHUNK_COST = 3.0  # its time in single certificates (measured 2-3), until one is timed
+CHUNK_GROWTH = 4  # each chunk this many times the last one's size; its time is estimated alike
 
 
 @dataclass(frozen=True)
@@ -55,9 +56,9 @@ def shield(cmd: Twist, state: Twist, candidates: np.ndarray, costs: np.ndarray |
            budget: TimeBudget | None = None) -> ShieldDecision:
     """Certify `cmd`; pass it unchanged if certified, else the nearest certified candidate
     (candidates (K, 2) of (v, ω), costs (K,) for ties), else brake. Candidates are certified
-    in chunks of CHUNK, 2·CHUNK, 4·CHUNK, …; with a clock `now`, the search stops when the next
-    chunk (twice the last one's time; before one is timed, CHUNK_COST times the command's
-    certificate) and the winner's certificate would end past `deadline` (braking needs no
+    in chunks of CHUNK, CHUNK_GROWTH·CHUNK, …; with a clock `now`, the search stops when the
+    next chunk (CHUNK_GROWTH times the last one's time; before one is timed, CHUNK_COST times the
+    command's certificate) and the winner's certificate would end past `deadline` (braking needs no
     search, so the answer is always in time).
     `budget`: in place of one on `deadline` and `now` (a replay's recorded budget)."""
     wa = world_arrays(world)
@@ -80,13 +81,13 @@ def shield(cmd: Twist, state: Twist, candidates: np.ndarray, costs: np.ndarray |
         expected = CHUNK_COST * single  # the next chunk's time, until one has been timed
         start, size = 0, CHUNK
         while start < len(order):
-            if start:  # twice the last chunk's time: as long as a chunk twice its size can take
-                expected = 4.0 * budget.lap()
+            if start:  # as long as the last chunk took, for each of its sizes in this one
+                expected = CHUNK_GROWTH * budget.lap()
             if not budget.allows(expected + single):  # the chunk, then the winner's certificate
                 out_of_time = True
                 break
             chunk = order[start:start + size]
-            start, size = start + size, 4 * size
+            start, size = start + size, CHUNK_GROWTH * size
             ok = certify_batch(cand[chunk], state, world, cfg, limits, wa, braking)
             if ok.any():
                 i = int(chunk[np.argmax(ok)])
