@@ -22,7 +22,7 @@ from runtime.safety.certificate import (
     certify_batch,
 )
 from runtime.safety.shield import ShieldDecision, shield
-from runtime.types import Twist
+from runtime.types import STOP, Twist
 
 LIM = LimitsConfig()
 NB = 64
@@ -103,9 +103,8 @@ def shield_one_by_one(cmd: Twist, state: Twist, candidates: np.ndarray, costs: n
         if ct.ok:
             return ShieldDecision(turn, "turned",
                                   f"turning in place, no certified candidate: {cert.reason}", ct)
-    br = brake_command(state, cfg, limits)
-    return ShieldDecision(br, "braked", f"braking, no certified candidate: {cert.reason}",
-                          certify(br, state, world, cfg, limits))
+    return ShieldDecision(STOP, "braked", f"braking, no certified candidate: {cert.reason}",
+                          certify(brake_command(state, cfg, limits), state, world, cfg, limits))
 
 
 def test_batch_decisions_equal_single_certificates_on_random_worlds():

@@ -3,8 +3,15 @@
 The certificate (runtime.safety.certificate) says whether a command keeps the robot clear;
 `shield` passes a certified command UNCHANGED; otherwise it substitutes the certified DWA
 candidate nearest in normalised (v, ω) (ties: lowest cost); otherwise the command's turn in
-place (v = 0, its ω) if that is certified; otherwise it brakes: v toward 0 by decel_max·period
-and ω toward 0 by alpha_max·period. Every intervention carries a reason.
+place (v = 0, its ω) if that is certified; otherwise it brakes: its command is STOP, which the
+limits stage (applied last, rate-limited from the last command sent) turns into braking at
+decel_max and alpha_max from what the base was told, the braking the certificate models. A
+brake computed from odometry's speed instead (which lags the commands by a feedback period or
+two) asked for little or no braking on every other cycle, even for speeding up toward the
+lagging reading: the robot braked at about half the modelled rate, and a person walking at it
+reached it while it still moved (two 10-minute real-time runs). The braked decision's
+certificate is that of braking from `state` as the certificate's own model has it.
+Every intervention carries a reason.
 """
 
 from __future__ import annotations
@@ -27,7 +34,7 @@ from runtime.safety.certificate import (
     world_arrays,
 )
 from runtime.safety.limits import LimitsConfig
-from runtime.types import Twist
+from runtime.types import STOP, Twist
 
 # Candidates are certified in chunks, nearest first, each CHUNK_GROWTH times the one before: a
 # chunk's cost grows far slower than its size (most is numpy's per-call overhead, and a candidate that
@@ -103,6 +110,5 @@ def shield(cmd: Twist, state: Twist, candidates: np.ndarray, costs: np.ndarray |
         ct = certify(turn, state, world, cfg, limits, wa, braking)
         if ct.ok:
             return ShieldDecision(turn, "turned", f"turning in place, {why}: {cert.reason}", ct)
-    br = brake_command(state, cfg, limits)
-    cb = certify(br, state, world, cfg, limits, wa, braking)
-    return ShieldDecision(br, "braked", f"braking, {why}: {cert.reason}", cb)
+    cb = certify(brake_command(state, cfg, limits), state, world, cfg, limits, wa, braking)
+    return ShieldDecision(STOP, "braked", f"braking, {why}: {cert.reason}", cb)
