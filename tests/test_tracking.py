@@ -9,7 +9,13 @@ import pytest
 from scipy.optimize import linear_sum_assignment
 
 from runtime.perception.clustering import Clusters, cluster_points
-from runtime.perception.tracking import Tracker, TrackerConfig, cv_matrices
+from runtime.perception.tracking import (
+    Tracker,
+    TrackerConfig,
+    cv_matrices,
+    cv_predict,
+    position_update,
+)
 from runtime.planning.planning_step import predict_tracks_base
 from sim_stub.orca import Circle, Polygon
 from sim_stub.scenario import load_scenario
@@ -366,3 +372,30 @@ def test_single_linkage_cut_matches_scipy_fcluster():
         # same partition (labels may be numbered differently)
         pairs = {(a, b) for a, b in zip(ours, ref)}
         assert len(pairs) == count == len(set(ref))
+
+
+def test_stacked_kalman_steps_equal_filterpy_s_filter():
+    """The tracker predicts and updates all tracks at once; each track's step must be the one
+    filterpy's KalmanFilter takes (its predict, its Joseph-form update)."""
+    from filterpy.kalman import KalmanFilter
+
+    rng = np.random.default_rng(7)
+    n = 6
+    x = rng.normal(0.0, 2.0, (n, 4))
+    a = rng.normal(0.0, 0.3, (n, 4, 4))
+    p = a @ a.transpose(0, 2, 1) + 0.01 * np.eye(4)
+    f, q = cv_matrices(0.067, 1.0)
+    z = rng.normal(0.0, 2.0, (n, 2))
+    r2 = rng.uniform(0.001, 0.05, n)
+    xs, ps = cv_predict(x, p, f, q)
+    xu, pu = position_update(xs, ps, z, r2)
+    h = np.hstack([np.eye(2), np.zeros((2, 2))])
+    for i in range(n):
+        kf = KalmanFilter(dim_x=4, dim_z=2)
+        kf.x, kf.P, kf.F, kf.Q, kf.H = x[i].reshape(4, 1), p[i].copy(), f, q, h
+        kf.predict()
+        np.testing.assert_allclose(xs[i], kf.x[:, 0], rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(ps[i], kf.P, rtol=1e-12, atol=1e-12)
+        kf.update(z[i].reshape(2, 1), R=np.eye(2) * r2[i])
+        np.testing.assert_allclose(xu[i], kf.x[:, 0], rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(pu[i], kf.P, rtol=1e-10, atol=1e-12)
