@@ -66,19 +66,22 @@ def test_stale_depth_degrades_the_loop_and_fresh_depth_recovers_it():
 
 
 def test_floor_check_without_a_floor_plane_says_so_instead_of_printing_nan(caplog):
-    """A wall filling the view leaves no near-vertical plane to fit: no 'tilt nan°'."""
+    """A wall filling the view leaves no near-vertical plane to fit: no 'tilt nan°'. A failure
+    is reported once it has held for floor_alarm_checks checks in a row (3): in a crowd single
+    checks fail and pass by turns, and each turn was a warning."""
     from runtime.perception.depth_points import FloorVerdict
 
     loop = ControlLoop(Config(), Calibration(), FreshFeedbackLink(), HoldJob(),
                        SystemdNotifier(None), depth=ScheduledDepth(SimClock()))
-    verdicts = iter([FloorVerdict(False, math.nan, math.nan, 320),
-                     FloorVerdict(True, 0.2, 0.001, 500),
-                     FloorVerdict(False, 4.0, -0.03, 500)])
+    no_plane, good, tilted = (FloorVerdict(False, math.nan, math.nan, 320),
+                              FloorVerdict(True, 0.2, 0.001, 500),
+                              FloorVerdict(False, 4.0, -0.03, 500))
+    verdicts = iter([tilted, good, tilted, tilted, good, *[no_plane] * 3, good, *[tilted] * 4])
     loop._pipeline.check_floor = lambda: next(verdicts)  # type: ignore[method-assign]
     caplog.set_level("WARNING", logger="safemove.loop")
-    for _ in range(3):
+    for _ in range(13):
         loop._check_floor()
     lines = [r.getMessage() for r in caplog.records]
     assert len(lines) == 2 and "nan" not in lines[0]
-    assert "no floor plane among the 320 points" in lines[0]
-    assert "tilt 4.0°, height -0.030 m" in lines[1]
+    assert "no floor plane among the 320 points near the calibrated floor in 3 checks" in lines[0]
+    assert "in 3 checks in a row (last: tilt 4.0°, height -0.030 m)" in lines[1]

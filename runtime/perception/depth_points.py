@@ -121,6 +121,12 @@ class PerceptionConfig:
         10, "floor check: run it every n-th frame (it costs ~0.3 ms); results are held between",
         min=1, max=10000,
     )
+    floor_alarm_checks: int = setting(
+        3, "floor check: the camera is reported off its calibration after this many failed"
+        " checks in a row (people around the robot hide the floor from a check or two and a"
+        " plane fitted to what remains is tilted; a camera that moved stays moved)",
+        min=1, max=1000,
+    )
     floor_band_m: float = setting(
         0.3, "floor check: candidate points lie within this height of the calibrated floor", "m",
         min=0.01, max=1.0,

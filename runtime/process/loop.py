@@ -174,6 +174,7 @@ class ControlLoop:
         self.depth_stats = (DepthStats(rejected=self._pipeline.depth_guard.rejected)
                             if depth is not None else None)
         self._floor_ok: bool | None = None
+        self._floor_failed = 0  # failed floor checks in a row
         self._link = link
         self._job = job
         self._notifier = notifier
@@ -445,20 +446,27 @@ class ControlLoop:
 
     def _check_floor(self) -> None:
         """Health check of the camera's calibration, run in the slack after the command: it
-        never delays one. Logged when the verdict changes."""
+        never delays one. Logged when the verdict changes, a failure only once it has held for
+        `perception.floor_alarm_checks` checks in a row: in a crowd, single checks failed and
+        passed by turns (14 false alarms in 4 real-time minutes)."""
         verdict = self._pipeline.check_floor()
-        if verdict is None:
+        if verdict is None or verdict.ok is None:
             return
-        if verdict.ok is not None and verdict.ok != self._floor_ok:
+        self._floor_failed = 0 if verdict.ok else self._floor_failed + 1
+        if not verdict.ok and self._floor_failed < self._cfg.perception.floor_alarm_checks:
+            return
+        if verdict.ok != self._floor_ok:
             self._floor_ok = verdict.ok
             if verdict.ok:
                 return
             if math.isnan(verdict.tilt_deg):
-                log.warning("no floor plane among the %d points near the calibrated floor (a wall"
-                            " filling the view, or the camera moved?)", verdict.points)
+                log.warning("no floor plane among the %d points near the calibrated floor in %d"
+                            " checks in a row (a wall filling the view, or the camera moved?)",
+                            verdict.points, self._floor_failed)
             else:
-                log.warning("the floor is not where the calibration puts it (tilt %.1f°, height"
-                            " %.3f m): has the camera moved?", verdict.tilt_deg, verdict.height_m)
+                log.warning("the floor is not where the calibration puts it in %d checks in a"
+                            " row (last: tilt %.1f°, height %.3f m): has the camera moved?",
+                            self._floor_failed, verdict.tilt_deg, verdict.height_m)
 
     def _log_stats(self, counters: dict[str, int], rate: RateKeeper) -> None:
         """The periodic statistics line: per-cycle events are counted here, not logged one by
