@@ -56,6 +56,27 @@ def test_obstacle_that_left_the_view_is_remembered_for_decay_time_then_forgotten
     assert mem.decayed_total == len(seen)
 
 
+def test_an_obstacle_beside_the_robot_is_kept_while_out_of_view_and_cleared_once_seen_gone():
+    """Not seeing a cell is no evidence that it is gone: a person standing beside the robot,
+    out of the camera's view, is remembered past decay_s (the robot drove into one it had
+    forgotten); turning to look at the place, empty now, clears it."""
+    mem = ObstacleMemory(ObstacleMemoryConfig(decay_s=3.0))  # hold_out_of_view_m 1.0
+    person = Cylinder(0.7, 0.0, 0.25)
+    mem.update_from(render((0.0, 0.0, 0.0), Scene([person])), (0.0, 0.0, 0.0), t=0.0,
+                    view=PER.view)
+    seen = len(mem)
+    assert seen > 0
+    beside = (0.0, 0.0, math.pi / 2)  # turned left: the person is at the robot's right
+    for k in range(1, 60):  # 6 s, twice decay_s
+        out = render(beside, Scene([person]))
+        assert len(out.points) == 0
+        mem.update_from(out, beside, t=0.1 * k, view=PER.view)
+    assert len(mem) == seen and mem.decayed_total == 0
+    # the person has gone; the robot turns back and sees the floor where they stood
+    mem.update_from(render((0.0, 0.0, 0.0), Scene([])), (0.0, 0.0, 0.0), t=6.0, view=PER.view)
+    assert len(mem) == 0
+
+
 def test_remembered_point_seen_through_is_cleared():
     mem = ObstacleMemory()
     pts = np.array([[2.0, 0.0], [2.0, 0.03]], dtype=np.float32)

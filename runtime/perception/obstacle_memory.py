@@ -4,7 +4,13 @@ Points are kept one per `cell_m` grid cell (a real observed point, the latest on
 with the cell's observed height range and the time it was last seen, in fixed-capacity numpy
 arrays (`max_points` cells), so memory stays bounded whatever the scene. Each update:
 
-1. decay: cells not seen for more than `decay_s` are dropped;
+1. decay: cells not seen for more than `decay_s` are dropped, except those within
+   `hold_out_of_view_m` of the robot that the camera cannot see now (outside its view, closer
+   than its minimum range, above or below it, or in an unknown bin): not seeing them is no
+   evidence they are gone, as the tracker's coasting has it. A person standing beside the
+   robot, forgotten after `decay_s`, was driven into when the robot moved on (a 60-minute
+   real-time run); the robot looks before it forgets: a turn toward a held cell clears it if
+   the place is empty;
 2. ray clearing: a remembered cell that the current frame had in view and saw through (its range
    in its bearing bin is shorter than that bin's free range by `clear_margin_m`) is dropped.
    Only bins that are not `unknown` clear (0 ... minimum range and no-return bins are unknown,
@@ -51,6 +57,11 @@ class ObstacleMemoryConfig:
     range_max_m: float = setting(
         4.0, "ray clearing acts only within this range of base_link (use perception's)", "m",
         min=0.1, max=20.0,
+    )
+    hold_out_of_view_m: float = setting(
+        1.0, "a remembered cell within this distance of base_link that the camera cannot see"
+        " now is kept past decay_s (not seeing it is no evidence it is gone); 0 = every cell"
+        " decays", "m", min=0.0, max=5.0,
     )
     clear_margin_m: float = setting(
         0.1, "a cell is cleared only if the bin saw free space this much beyond it", "m",
@@ -119,10 +130,11 @@ class ObstacleMemory:
         c, s = math.cos(th), math.sin(th)
         n = self._n
         if n:
-            alive = (t - self._t[:n]) <= cfg.decay_s
+            visible, r, k = self._visible(px, py, c, s, unknown, bin_angles, view)
+            alive = ((t - self._t[:n]) <= cfg.decay_s) | (~visible & (r <= cfg.hold_out_of_view_m))
             self.decayed_total += int(n - np.count_nonzero(alive))
-            clear = self._clear_mask(px, py, c, s, scan, unknown, bin_angles, view)
-            clear &= alive
+            free = np.minimum(np.asarray(scan, dtype=np.float64)[k], cfg.range_max_m)
+            clear = visible & (r < free - cfg.clear_margin_m) & alive
             self.cleared_total += int(np.count_nonzero(clear))
             alive &= ~clear
             self._compact(alive)
@@ -131,7 +143,12 @@ class ObstacleMemory:
         if len(pts):
             self._insert(pts, heights, px, py, c, s, t)
 
-    def _clear_mask(self, px, py, c, s, scan, unknown, bin_angles, view) -> np.ndarray:
+    def _visible(self, px, py, c, s, unknown, bin_angles, view
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Which remembered cells the camera sees now (inside the bearing span, in a bin that
+        is not unknown, within range_max and, with a ViewCone, beyond its minimum range with
+        the cell's heights in its vertical view; without one, beyond clear_min_range_m), their
+        range from base_link and their bearing bin (0 for those outside the span)."""
         cfg = self.config
         n = self._n
         dx = self._x[:n] - px
@@ -142,17 +159,16 @@ class ObstacleMemory:
         k = bin_index(np.arctan2(by, bx), *bin_layout(bin_angles), len(bin_angles))
         inside = k >= 0
         kk = np.where(inside, k, 0)
-        free = np.minimum(np.asarray(scan, dtype=np.float64)[kk], cfg.range_max_m)
-        clear = inside & ~np.asarray(unknown)[kk] & (r < free - cfg.clear_margin_m)
+        visible = inside & ~np.asarray(unknown)[kk] & (r <= cfg.range_max_m)
         if view is None:
-            clear &= r >= cfg.clear_min_range_m
+            visible &= r >= cfg.clear_min_range_m
         else:
-            clear &= r >= view.near_range[kk]
+            visible &= r >= view.near_range[kk]
             dr = np.maximum(r - view.cam_r, 0.0)
             z_low = view.cam_z - view.low_slope[kk] * dr
             z_high = view.cam_z + view.high_slope[kk] * dr
-            clear &= (self._zhi[:n] >= z_low) & (self._zlo[:n] <= z_high)
-        return clear
+            visible &= (self._zhi[:n] >= z_low) & (self._zlo[:n] <= z_high)
+        return visible, r, kk
 
     def _compact(self, keep: np.ndarray) -> None:
         m = int(np.count_nonzero(keep))
