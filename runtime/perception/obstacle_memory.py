@@ -7,10 +7,9 @@ arrays (`max_points` cells), so memory stays bounded whatever the scene. Each up
 1. decay: cells not seen for more than `decay_s` are dropped, except those within
    `hold_out_of_view_m` of the robot that the camera cannot see now (outside its view, closer
    than its minimum range, above or below it, or in an unknown bin): not seeing them is no
-   evidence they are gone, as the tracker's coasting has it. A person standing beside the
-   robot, forgotten after `decay_s`, was driven into when the robot moved on (a 60-minute
-   real-time run); the robot looks before it forgets: a turn toward a held cell clears it if
-   the place is empty;
+   evidence they are gone, as the tracker's coasting has it (a person standing beside the
+   robot must not be forgotten while the robot turns in place and then driven into). The
+   robot looks before it forgets: a turn toward a held cell clears it if the place is empty;
 2. ray clearing: a remembered cell that the current frame had in view and saw through (its range
    in its bearing bin is shorter than that bin's free range by `clear_margin_m`) is dropped.
    Only bins that are not `unknown` clear (0 ... minimum range and no-return bins are unknown,

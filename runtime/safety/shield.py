@@ -5,11 +5,10 @@ The certificate (runtime.safety.certificate) says whether a command keeps the ro
 candidate nearest in normalised (v, ω) (ties: lowest cost); otherwise the command's turn in
 place (v = 0, its ω) if that is certified; otherwise it brakes: its command is STOP, which the
 limits stage (applied last, rate-limited from the last command sent) turns into braking at
-decel_max and alpha_max from what the base was told, the braking the certificate models. A
-brake computed from odometry's speed instead (which lags the commands by a feedback period or
-two) asked for little or no braking on every other cycle, even for speeding up toward the
-lagging reading: the robot braked at about half the modelled rate, and a person walking at it
-reached it while it still moved (two 10-minute real-time runs). The braked decision's
+decel_max and alpha_max from what the base was told, the braking the certificate models. Not
+from odometry's speed: it lags the commands by a feedback period or two, so a brake computed
+from it asks for little or no braking on every other cycle (or for speeding up toward the
+lagging reading) and the robot brakes at about half the modelled rate. The braked decision's
 certificate is that of braking from `state` as the certificate's own model has it.
 Every intervention carries a reason.
 """
