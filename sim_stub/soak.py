@@ -139,7 +139,11 @@ def soak(args: argparse.Namespace) -> dict[str, Any]:
         "min_separation_m": world.get("min_separation"),
         "rss_mb": {"first": rss[0][1] if rss else None, "last": rss[-1][1] if rss else None,
                    "max": max((r for _, r in rss), default=None),
-                   "slope_mb_per_h_after_warmup": slope_mb_per_h(rss, args.warmup_s)},
+                   "slope_mb_per_h_after_warmup": slope_mb_per_h(rss, args.warmup_s),
+                   # a settling heap flattens out, a leak does not: the later half alone
+                   "slope_mb_per_h_second_half": slope_mb_per_h(
+                       rss, max(args.warmup_s, rss[-1][0] / 2.0) if rss else 0.0),
+                   "samples_s_mb": [[round(t, 1), round(r, 2)] for t, r in rss]},
         "log_lines": len(log_lines), "log_lines_per_min": round(len(log_lines) / minutes_run, 1),
         "log_lines_by_level_logger": dict(kinds.most_common(8)),
         "tracebacks": stderr.count("Traceback"),

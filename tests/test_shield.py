@@ -351,8 +351,9 @@ def test_braking_follows_the_commands_not_odometry_that_lags_them():
 def test_untracked_points_ahead_are_kept_at_a_distance_a_walking_person_could_close():
     """With the margin on (the default), a point ahead may be a person walking in at 1 m/s:
     the robot must stand still before they could reach it. Turning in place and moving away
-    stay free; a point to the side (outside ±45°) or behind gets no margin."""
-    cfg = ShieldConfig()
+    stay free; a point to the side (outside ±45°) or behind gets no margin. (The lead rays'
+    walker's reach is the same rule for unseen space: off here, tested below.)"""
+    cfg = ShieldConfig(lead_depths=1)
     assert cfg.untracked_approach_m_s == 1.0
     pts, scan = wall_at(0.30)
     w = world(pts, scan=scan)
@@ -366,6 +367,26 @@ def test_untracked_points_ahead_are_kept_at_a_distance_a_walking_person_could_cl
     assert certify(Twist(0.1, 0.0), Twist(0.1, 0.0), side, cfg, LIM).ok
     far, scan = wall_at(0.60)
     assert certify(slow, slow, world(far, scan=scan), cfg, LIM).ok
+
+
+def test_a_fast_turn_onto_space_out_of_view_is_refused_where_a_walker_could_reach_it():
+    """Turning right at 1 rad/s at 0.3 m/s sweeps the lead arc beyond the view's right edge
+    within the stop: a person standing just out of sight there, walking in at 1 m/s, would meet
+    the robot's front before it stands (a soak's contact). The footprint's boundary alone stays
+    in view, so the boundary-only rule passed it. Gentler turns and going straight stay free,
+    and an older frame leaves a person more time to have walked in."""
+    cfg = ShieldConfig()
+    clear = world()  # nothing seen anywhere in view
+    fast = Twist(0.3, -1.0)
+    c = certify(fast, fast, clear, cfg, LIM)
+    assert not c.ok and "walker's reach of space outside the camera's view" in c.reason
+    assert certify(fast, fast, clear, replace(cfg, lead_depths=1), LIM).ok
+    assert certify(fast, fast, clear, replace(cfg, untracked_approach_m_s=0.0), LIM).ok
+    for ok in (Twist(0.3, 0.0), Twist(0.3, -0.5), Twist(0.15, -1.0)):
+        assert certify(ok, ok, clear, cfg, LIM).ok, ok
+    gentle = Twist(0.3, -0.9)
+    assert certify(gentle, gentle, clear, cfg, LIM).ok
+    assert not certify(gentle, gentle, replace(clear, points_age=0.2), cfg, LIM).ok
 
 
 def test_a_person_walking_away_may_stop_so_the_robot_keeps_its_distance_from_where_they_are():
@@ -393,7 +414,7 @@ def test_a_person_walking_away_may_stop_so_the_robot_keeps_its_distance_from_whe
 def test_an_untracked_point_seen_in_an_old_frame_may_be_a_person_already_closer():
     """The person behind a point has walked on since the frame was taken: 0.1 s of frame age
     at 1 m/s is 10 cm the certificate must not count on."""
-    cfg = ShieldConfig()
+    cfg = ShieldConfig(lead_depths=1)
     slow = Twist(0.1, 0.0)  # needs 0.22 + 1.0 * 0.2 = 0.42 m from a point ahead, when fresh
     pts, scan = wall_at(0.46)
     fresh = world(pts, scan=scan)

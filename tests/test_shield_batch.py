@@ -31,8 +31,8 @@ ANG = 0.5 * (EDGES[:-1] + EDGES[1:])
 CONFIGS = (
     ShieldConfig(),
     ShieldConfig(untracked_approach_m_s=0.0),
-    ShieldConfig(reverse_into_unseen=True, blind_zone="occupied"),
-    ShieldConfig(model_limits=False, lead_rays=1),
+    ShieldConfig(reverse_into_unseen=True, blind_zone="occupied", lead_depths=1),
+    ShieldConfig(model_limits=False, lead_rays=1, lead_depths=1),
     ShieldConfig(max_candidates=9, substeps=2, check_dt=0.013),
 )
 
@@ -126,6 +126,9 @@ def test_batch_decisions_equal_single_certificates_on_random_worlds():
                 "cmd would drive at (it may be a person walking in)", "cmd would reach track",
                 "cmd would enter space outside", "cmd would enter unseen space in bin",
                 "cmd would enter space behind", "cmd would enter the camera's blind zone",
+                "cmd would pass within a walker's reach of space outside",
+                "cmd would pass within a walker's reach of unseen space in bin",
+                "cmd would pass within a walker's reach of space behind",
                 "non-finite command or state"):
         assert sum(r.startswith(why) for r in reasons) > 3, why
 

@@ -27,11 +27,15 @@ Obstacle model (what must stay clear, exactly):
       predictions the planner makes); the robot must stay at distance >= R + radius_i +
       k_sigma·std_i(t) from that whole segment. A person walking away from the robot therefore
       buys it no room: it keeps its distance from where they are now.
-  (c) unseen space: while the robot translates (v != 0), its LEAD POINTS — the footprint boundary
-      points at angles within ±lead_half_angle of the direction of travel (heading, or heading+π
-      when reversing), `lead_rays` of them — must lie inside the current footprint disc
-      (|p| <= R + unseen_tolerance) or in SEEN space: inside the camera's bearing span, in a bin
-      that is not `unknown`, and nearer than that bin's scan return (beyond a return is shadow).
+  (c) unseen space: while the robot translates (v != 0), its LEAD POINTS must lie inside the
+      current footprint disc (|p| <= R + unseen_tolerance) or in SEEN space: inside the camera's
+      bearing span, in a bin that is not `unknown`, and nearer than that bin's scan return
+      (beyond a return is shadow). The lead points lie on `lead_rays` rays at angles within
+      ±lead_half_angle of the direction of travel (heading, or heading+π when reversing), from
+      the footprint boundary (R) out to R + untracked_approach·(t + points_age), `lead_depths`
+      of them on each: a person may stand just out of sight and walk in, like an untracked
+      point in (a), so the robot may not turn or drive at speed onto space it has not seen
+      that such a person could reach before it stops (lead_depths = 1: the boundary only).
       Reversing with cfg.reverse_into_unseen=True skips (c) for v < 0 (trusts obstacle memory).
       Pure rotation in place (v == 0) sweeps only the current disc and is never unseen.
       The flanks of the moving disc outside the lead arc are left to obstacle memory (a), which
@@ -101,6 +105,10 @@ class ShieldConfig:
         30.0, "half-angle of the footprint's lead arc checked against unseen space", "deg",
         min=0.0, max=90.0)
     lead_rays: int = setting(5, "points on the lead arc checked against unseen space", min=1, max=64)
+    lead_depths: int = setting(
+        3, "points along each lead ray checked against unseen space, from the footprint out to"
+        " untracked_approach_m_s × time (1 = the footprint only: a person walking out of unseen"
+        " space is not reckoned with)", min=1, max=16)
     unseen_tolerance: float = setting(
         0.005, "a lead point this close outside the current disc still counts as inside", "m",
         min=0.0, max=0.1)
@@ -121,7 +129,8 @@ class ShieldConfig:
         1.0, "a remembered point may be a person not (yet) tracked, e.g. one entering from the"
         " side, cut by the view's edge: while the robot closes on a point within"
         " ±approach_half_angle_deg of its heading, it keeps this speed × time as extra distance,"
-        " so it stands before such a person can reach it (0 = off); the fastest walker the"
+        " so it stands before such a person can reach it, and likewise from unseen space on"
+        " its lead rays (0 = off); the fastest walker the"
         " robot meets (the simulated crowds walk 0.5-1.0 m/s)", "m/s", min=0.0, max=3.0)
     approach_half_angle_deg: float = setting(
         45.0, "the front, around the direction of travel, where untracked_approach_m_s applies",
@@ -427,26 +436,43 @@ def _track_margins(p: Rollouts, ref: np.ndarray, vmax: np.ndarray, tol_ref: np.n
     return np.where(p.valid, gap - slack_t - floor, np.inf)
 
 
-def _lead_kinds(p: Rollouts, vmax: np.ndarray, wmax: np.ndarray, wa: WorldArrays,
+def _lead_fractions(cfg: ShieldConfig) -> np.ndarray:
+    """Where the lead points lie along a lead ray, as fractions of the walker's reach."""
+    if cfg.lead_depths > 1 and cfg.untracked_approach_m_s > 0.0:
+        return np.linspace(0.0, 1.0, cfg.lead_depths)
+    return np.zeros(1)
+
+
+def _lead_kinds(p: Rollouts, vmax: np.ndarray, wmax: np.ndarray, wa: WorldArrays, age: float,
                 cfg: ShieldConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(c)/(d) at the lead arc of every translating sample: its command, sample, and each lead
+    """(c)/(d) at the lead rays of every translating sample: its command, sample, and each lead
     point's unseen kind and bin, as in _Margins."""
     moving = (p.vs != 0.0) & p.valid
     if cfg.reverse_into_unseen:
         moving &= p.vs > 0.0
     beta = math.radians(cfg.lead_half_angle_deg)
     offs = np.linspace(-beta, beta, cfg.lead_rays) if cfg.lead_rays > 1 else np.zeros(1)
+    frac = _lead_fractions(cfg)
     at = np.flatnonzero(moving)
     kk, jj = np.divmod(at, moving.shape[1])
     if not len(at):
-        return kk, jj, np.zeros((0, len(offs)), np.int8), np.zeros((0, len(offs)), int)
+        L = len(offs) * len(frac)
+        return kk, jj, np.zeros((0, L), np.int8), np.zeros((0, L), int)
     R = cfg.footprint
     pose = p.pose.reshape(-1, 3)[at]
     heading = pose[:, 2] + np.where(p.vs.ravel()[at] < 0, math.pi, 0.0)
     ang = heading[:, None] + offs[None, :]
-    lead = pose[:, None, :2] + R * np.stack([np.cos(ang), np.sin(ang)], axis=2)
+    # each ray from the footprint out to where a person walking out of unseen space since the
+    # depth frame was taken could be by now: (L,) = rays × depths, ray-major
+    speed = cfg.untracked_approach_m_s
+    radius = R + speed * (p.ts.ravel()[at] + age)[:, None] * frac[None, :]  # (M, D)
+    direction = np.stack([np.cos(ang), np.sin(ang)], axis=2)  # (M, rays, 2)
+    lead = pose[:, None, None, :2] + radius[:, None, :, None] * direction[:, :, None, :]
     lead = lead.reshape(-1, 2)
-    slack_u = np.repeat(((vmax + R * wmax) * p.h + 1e-9)[kk], len(offs))
+    # how far a lead point moves between samples: the centre, the turn at its radius, the reach
+    slack_u = ((vmax[kk, None] + radius * wmax[kk, None] + speed * frac[None, :])
+               * p.h[kk, None] + 1e-9)
+    slack_u = np.broadcast_to(slack_u[:, None, :], (len(kk), len(offs), len(frac))).ravel()
     outside_disc = np.hypot(lead[:, 0], lead[:, 1]) > R + cfg.unseen_tolerance - slack_u
     kind, where = _unseen(wa, cfg, lead, slack_u)
     kind[~outside_disc] = 0
@@ -499,7 +525,7 @@ def _margins(cmds: np.ndarray, state: Twist, world: ShieldWorld, wa: WorldArrays
               if len(wa.tracks) else np.zeros((0, *p.ts.shape)))
     return _Margins(p.ts, *_point_margins(p, q.ref, q.slack_c, q.tol_ref, wa.points,
                                           max(world.points_age, 0.0), cfg, explain=True),
-                    tracks, *_lead_kinds(p, q.vmax, q.wmax, wa, cfg))
+                    tracks, *_lead_kinds(p, q.vmax, q.wmax, wa, max(world.points_age, 0.0), cfg))
 
 
 def certify_batch(cmds: np.ndarray, state: Twist, world: ShieldWorld, cfg: ShieldConfig,
@@ -524,7 +550,8 @@ def certify_batch(cmds: np.ndarray, state: Twist, world: ShieldWorld, cfg: Shiel
         alive = np.flatnonzero(~(tracks.min(axis=(0, 2)) < 0))
         q = q.rows(alive)
     if len(alive):
-        lead_cmd, _, lead_kind, _ = _lead_kinds(q.p, q.vmax, q.wmax, wa, cfg)
+        lead_cmd, _, lead_kind, _ = _lead_kinds(q.p, q.vmax, q.wmax, wa,
+                                                  max(world.points_age, 0.0), cfg)
         failed = np.zeros(len(alive), dtype=bool)
         failed[lead_cmd[(lead_kind != 0).any(axis=1)]] = True
         alive, q = alive[~failed], q.rows(~failed)
@@ -593,11 +620,12 @@ def certify(cmd: Twist, state: Twist, world: ShieldWorld, cfg: ShieldConfig,
         f = int(np.argmax(bad))
         tbad = float(ts[mg.lead_sample[f // mg.lead_kind.shape[1]]])
         b = int(mg.lead_bin.ravel()[f])
+        reach = "pass within a walker's reach of" if f % len(_lead_fractions(cfg)) else "enter"
         what = {_OUTSIDE: "space outside the camera's view",
                 _UNKNOWN: f"unseen space in bin {b}",
                 _SHADOW: f"space behind the scan return in bin {b}",
                 _BLIND: f"the camera's blind zone in bin {b}"}[int(mg.lead_kind.ravel()[f])]
-        failures.append((tbad, f"cmd would enter {what} at t={tbad:.2f} s"))
+        failures.append((tbad, f"cmd would {reach} {what} at t={tbad:.2f} s"))
 
     if failures:
         failures.sort(key=lambda x: x[0])
