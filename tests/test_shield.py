@@ -389,6 +389,19 @@ def test_a_fast_turn_onto_space_out_of_view_is_refused_where_a_walker_could_reac
     assert not certify(gentle, gentle, replace(clear, points_age=0.2), cfg, LIM).ok
 
 
+def test_a_standing_robot_whose_odometry_creeps_backwards_may_still_drive_off():
+    """Odometry reads a standing robot creeping by a wheel quantum, backwards as often as not.
+    Its motion until the command takes effect (the latency) is no command's to change: checked
+    with the walker's reach behind it, every command failed, braking too, and the robot froze
+    where it stood (a lock-stepped episode braked 90 of its cycles standing still)."""
+    cfg = ShieldConfig()
+    creep = Twist(-0.002, 0.0)
+    for cmd in (Twist(0.1, 0.0), Twist(0.3, 0.0), Twist(0.0, 0.5)):
+        assert certify(cmd, creep, world(), cfg, LIM).ok, cmd
+    d = shield(Twist(0.3, 0.0), creep, np.zeros((0, 2)), None, world(), LIM, cfg)
+    assert d.kind == "passed"
+
+
 def test_a_person_walking_away_may_stop_so_the_robot_keeps_its_distance_from_where_they_are():
     """Following a person who walks away at 1 m/s, 6 cm beyond contact: banking on them walking
     on would certify full speed; if they stop, the robot at 0.3 m/s needs ~8 cm to stand."""

@@ -33,9 +33,10 @@ Obstacle model (what must stay clear, exactly):
       (beyond a return is shadow). The lead points lie on `lead_rays` rays at angles within
       ±lead_half_angle of the direction of travel (heading, or heading+π when reversing), from
       the footprint boundary (R) out to R + untracked_approach·(t + points_age), `lead_depths`
-      of them on each: a person may stand just out of sight and walk in, like an untracked
-      point in (a), so the robot may not turn or drive at speed onto space it has not seen
-      that such a person could reach before it stops (lead_depths = 1: the boundary only).
+      of them on each, from t = latency on (before, the boundary only): a person may stand
+      just out of sight and walk in, like an untracked point in (a), so the robot may not turn
+      or drive at speed onto space it has not seen that such a person could reach before it
+      stops (lead_depths = 1: the boundary only).
       Reversing with cfg.reverse_into_unseen=True skips (c) for v < 0 (trusts obstacle memory).
       Pure rotation in place (v == 0) sweeps only the current disc and is never unseen.
       The flanks of the moving disc outside the lead arc are left to obstacle memory (a), which
@@ -465,12 +466,17 @@ def _lead_kinds(p: Rollouts, vmax: np.ndarray, wmax: np.ndarray, wa: WorldArrays
     # each ray from the footprint out to where a person walking out of unseen space since the
     # depth frame was taken could be by now: (L,) = rays × depths, ray-major
     speed = cfg.untracked_approach_m_s
-    radius = R + speed * (p.ts.ravel()[at] + age)[:, None] * frac[None, :]  # (M, D)
+    # from when the command takes effect: the motion before (the latency) is no command's to
+    # change, and checking it with the reach fails every command, braking too, when odometry
+    # reads a standing robot creeping by a quantum backwards
+    t = p.ts.ravel()[at]
+    rate = np.where(t >= cfg.latency, speed, 0.0)
+    radius = R + (rate * (t + age))[:, None] * frac[None, :]  # (M, D)
     direction = np.stack([np.cos(ang), np.sin(ang)], axis=2)  # (M, rays, 2)
     lead = pose[:, None, None, :2] + radius[:, None, :, None] * direction[:, :, None, :]
     lead = lead.reshape(-1, 2)
     # how far a lead point moves between samples: the centre, the turn at its radius, the reach
-    slack_u = ((vmax[kk, None] + radius * wmax[kk, None] + speed * frac[None, :])
+    slack_u = ((vmax[kk, None] + radius * wmax[kk, None] + rate[:, None] * frac[None, :])
                * p.h[kk, None] + 1e-9)
     slack_u = np.broadcast_to(slack_u[:, None, :], (len(kk), len(offs), len(frac))).ravel()
     outside_disc = np.hypot(lead[:, 0], lead[:, 1]) > R + cfg.unseen_tolerance - slack_u
