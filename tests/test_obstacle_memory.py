@@ -71,10 +71,33 @@ def test_an_obstacle_beside_the_robot_is_kept_while_out_of_view_and_cleared_once
         out = render(beside, Scene([person]))
         assert len(out.points) == 0
         mem.update_from(out, beside, t=0.1 * k, view=PER.view)
+        assert len(mem.points_base(beside)) == seen  # handed to the planner and the shield
     assert len(mem) == seen and mem.decayed_total == 0
     # the person has gone; the robot turns back and sees the floor where they stood
     mem.update_from(render((0.0, 0.0, 0.0), Scene([])), (0.0, 0.0, 0.0), t=6.0, view=PER.view)
     assert len(mem) == 0
+
+
+def test_a_corner_beside_the_robot_at_the_view_s_edge_is_not_cleared_by_rays_that_miss_it():
+    """Perception bins rays by their bearing from the camera, which sits ahead of base_link:
+    a cell close beside the robot lies inside the view by its bearing from base_link but
+    outside every ray the camera casts, so free space seen by those rays says nothing about it
+    (a box's corner was cleared this way and driven into)."""
+    corner = np.array([[0.305, -0.19]], np.float32)
+    assert PER.view.bin_of(np.arctan2(corner[:, 1], corner[:, 0]))[0] >= 0  # in by base bearing
+    mem = ObstacleMemory()
+    mem.update(corner, (0.0, 0.0, 0.0), free_scan(0.36), no_unknown(), BINS, 0.0,
+               heights=np.array([0.7], np.float32), view=PER.view)
+    mem.update(np.empty((0, 2), np.float32), (0.0, 0.0, 0.0), free_scan(4.0), no_unknown(), BINS,
+               0.1, view=PER.view)
+    assert len(mem) == 1 and mem.cleared_total == 0
+    # straight ahead, where the camera's rays do pass, the same free space clears
+    ahead = ObstacleMemory()
+    ahead.update(np.array([[1.0, 0.0]], np.float32), (0.0, 0.0, 0.0), free_scan(1.0),
+                 no_unknown(), BINS, 0.0, heights=np.array([0.5], np.float32), view=PER.view)
+    ahead.update(np.empty((0, 2), np.float32), (0.0, 0.0, 0.0), free_scan(4.0), no_unknown(),
+                 BINS, 0.1, view=PER.view)
+    assert len(ahead) == 0 and ahead.cleared_total == 1
 
 
 def test_remembered_point_seen_through_is_cleared():

@@ -175,6 +175,8 @@ class ViewCone:
     high_slope: np.ndarray  # (bins,) rise of the highest ray per metre of range
     near_range: np.ndarray  # (bins,) base range of the minimum-range sphere
     range_max: float
+    cam_x: float = 0.0  # camera position in base_link, m: bins are bearings seen from it
+    cam_y: float = 0.0
 
     def bin_of(self, bearing: np.ndarray) -> np.ndarray:
         """Bin index per bearing (rad); -1 outside the span."""
@@ -281,7 +283,8 @@ class Perception:
         self.blind_range = near
         self._cam_proj = (tx * np.cos(self.bin_angles) + ty * np.sin(self.bin_angles)).astype(F32)
         self.view = ViewCone(self.bin_angles.astype(np.float64), self._bin_w, float(tz), cam_r,
-                             low, high, near.astype(np.float64), cfg.range_max_m)
+                             low, high, near.astype(np.float64), cfg.range_max_m,
+                             float(tx), float(ty))
 
         # preallocated per-frame buffers
         self._z = np.empty(m, dtype=F32)

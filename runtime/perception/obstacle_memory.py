@@ -88,6 +88,8 @@ class ObstacleMemory:
         self._zlo = np.empty(c, dtype=F32)
         self._zhi = np.empty(c, dtype=F32)
         self._t = np.empty(c, dtype=np.float64)
+        # held by the last update: unseen now and close, so alive past decay_s (see update)
+        self._held = np.zeros(c, dtype=bool)
         self._n = 0
         self.t_last = -math.inf
         self.cleared_total = 0
@@ -130,7 +132,8 @@ class ObstacleMemory:
         n = self._n
         if n:
             visible, r, k = self._visible(px, py, c, s, unknown, bin_angles, view)
-            alive = ((t - self._t[:n]) <= cfg.decay_s) | (~visible & (r <= cfg.hold_out_of_view_m))
+            self._held[:n] = ~visible & (r <= cfg.hold_out_of_view_m)
+            alive = ((t - self._t[:n]) <= cfg.decay_s) | self._held[:n]
             self.decayed_total += int(n - np.count_nonzero(alive))
             free = np.minimum(np.asarray(scan, dtype=np.float64)[k], cfg.range_max_m)
             clear = visible & (r < free - cfg.clear_margin_m) & alive
@@ -155,7 +158,10 @@ class ObstacleMemory:
         bx = c * dx + s * dy
         by = -s * dx + c * dy
         r = np.hypot(bx, by)
-        k = bin_index(np.arctan2(by, bx), *bin_layout(bin_angles), len(bin_angles))
+        # bearing from the camera, as perception bins its rays: beside the robot the bearing
+        # from base_link can fall in a bin whose rays pass the cell by
+        ox, oy = (0.0, 0.0) if view is None else (view.cam_x, view.cam_y)
+        k = bin_index(np.arctan2(by - oy, bx - ox), *bin_layout(bin_angles), len(bin_angles))
         inside = k >= 0
         kk = np.where(inside, k, 0)
         visible = inside & ~np.asarray(unknown)[kk] & (r <= cfg.range_max_m)
@@ -173,7 +179,7 @@ class ObstacleMemory:
         m = int(np.count_nonzero(keep))
         if m == self._n:
             return
-        for a in (self._key, self._x, self._y, self._zlo, self._zhi, self._t):
+        for a in (self._key, self._x, self._y, self._zlo, self._zhi, self._t, self._held):
             a[:m] = a[: self._n][keep]
         self._n = m
 
@@ -240,6 +246,7 @@ class ObstacleMemory:
             self._zlo[slot] = np.minimum(self._zlo[slot], zlo[hit])
             self._zhi[slot] = np.maximum(self._zhi[slot], zhi[hit])
             self._t[slot] = t
+            self._held[slot] = False
         new = ~hit
         m = int(np.count_nonzero(new))
         cap = cfg.max_points
@@ -266,14 +273,16 @@ class ObstacleMemory:
         self._zlo[n:e] = zlo[new]
         self._zhi[n:e] = zhi[new]
         self._t[n:e] = t
+        self._held[n:e] = False
         self._n = e
 
     # ------------------------------------------------------------------ queries
     def points_odom(self, t: float | None = None) -> np.ndarray:
-        """(M, 2) float64 remembered points in odom, alive at t (default: the last update's t)."""
+        """(M, 2) float64 remembered points in odom alive at t (default: the last update's t):
+        seen within decay_s, or held by the last update (unseen beside the robot)."""
         n = self._n
         tt = self.t_last if t is None else t
-        alive = (tt - self._t[:n]) <= self.config.decay_s
+        alive = ((tt - self._t[:n]) <= self.config.decay_s) | self._held[:n]
         return np.stack([self._x[:n][alive], self._y[:n][alive]], axis=1)
 
     def points_base(self, pose_odom: tuple[float, float, float],
