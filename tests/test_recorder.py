@@ -177,7 +177,7 @@ def test_an_unwritable_directory_refuses_the_start_in_one_line(tmp_path, capsys)
 def test_a_demo_whose_disk_fills_mid_run_reaches_its_goal(tmp_path):
     """A real process whose files may not grow past 2 MB (RLIMIT_FSIZE: the kernel refuses the
     write as a full disk would): the recording stops with one line, the robot drives on to
-    the goal. A room without people and a goal 5 m away, reached in about 36 s with 120 s
+    the goal. A room without people and a goal 5 m away, reached in 26-38 s with 120 s
     allowed, so the outcome is the recorder's and not the machine's load (a crowd in real
     time is not repeatable)."""
     import resource

@@ -160,7 +160,8 @@ class PerceptionConfig:
 
 @dataclass(frozen=True)
 class ViewCone:
-    """Where the camera can see, per bearing bin, for obstacle memory's ray clearing.
+    """Where the camera can see, per bearing bin, for obstacle memory's ray clearing. A bin
+    holds the rays whose bearing from the camera (at `cam_x`, `cam_y` in base_link) falls in it.
 
     At base_link range r in bin b the camera sees heights from
     `cam_z - low_slope[b] * (r - cam_r)` to `cam_z + high_slope[b] * (r - cam_r)` (conservative:
@@ -169,14 +170,18 @@ class ViewCone:
 
     bin_angles: np.ndarray  # (bins,) rad, right to left
     bin_width: float  # rad
+    cam_x: float  # camera position in base_link, m
+    cam_y: float
     cam_z: float  # camera height above the floor, m
-    cam_r: float  # horizontal distance of the camera from base_link origin, m
     low_slope: np.ndarray  # (bins,) descent of the lowest ray per metre of range
     high_slope: np.ndarray  # (bins,) rise of the highest ray per metre of range
     near_range: np.ndarray  # (bins,) base range of the minimum-range sphere
     range_max: float
-    cam_x: float = 0.0  # camera position in base_link, m: bins are bearings seen from it
-    cam_y: float = 0.0
+
+    @property
+    def cam_r(self) -> float:
+        """Horizontal distance of the camera from base_link's origin, m."""
+        return math.hypot(self.cam_x, self.cam_y)
 
     def bin_of(self, bearing: np.ndarray) -> np.ndarray:
         """Bin index per bearing (rad); -1 outside the span."""
@@ -282,9 +287,9 @@ class Perception:
         near = np.full(n, cam_r + cfg.min_range_m * float(rho.max()), dtype=F32)
         self.blind_range = near
         self._cam_proj = (tx * np.cos(self.bin_angles) + ty * np.sin(self.bin_angles)).astype(F32)
-        self.view = ViewCone(self.bin_angles.astype(np.float64), self._bin_w, float(tz), cam_r,
-                             low, high, near.astype(np.float64), cfg.range_max_m,
-                             float(tx), float(ty))
+        self.view = ViewCone(self.bin_angles.astype(np.float64), self._bin_w, float(tx),
+                             float(ty), float(tz), low, high, near.astype(np.float64),
+                             cfg.range_max_m)
 
         # preallocated per-frame buffers
         self._z = np.empty(m, dtype=F32)

@@ -160,7 +160,7 @@ class ObstacleMemory:
         r = np.hypot(bx, by)
         # bearing from the camera, as perception bins its rays: beside the robot the bearing
         # from base_link can fall in a bin whose rays pass the cell by
-        ox, oy = (0.0, 0.0) if view is None else (view.cam_x, view.cam_y)
+        ox, oy = (0.0, 0.0) if view is None else (view.cam_x, view.cam_y)  # no view: no offset
         k = bin_index(np.arctan2(by - oy, bx - ox), *bin_layout(bin_angles), len(bin_angles))
         inside = k >= 0
         kk = np.where(inside, k, 0)
