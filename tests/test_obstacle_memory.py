@@ -7,9 +7,11 @@ import math
 import numpy as np
 
 from drivers.depth_source import D435_848x480
-from runtime.config.settings import CameraMount
+from runtime.config.settings import CameraMount, Config
 from runtime.perception.depth_points import Perception
 from runtime.perception.obstacle_memory import ObstacleMemory, ObstacleMemoryConfig
+from runtime.perception.world_model import WorldModel
+from runtime.types import DepthFrame, Odometry
 from sim_stub.depth_render import Cylinder, DepthRenderer, Scene
 from sim_stub.sim_server import BASE_LINK_HEIGHT_M
 
@@ -78,6 +80,46 @@ def test_an_obstacle_beside_the_robot_is_kept_while_out_of_view_and_cleared_once
     assert len(mem) == 0
 
 
+def _world_after(poses, scenes) -> np.ndarray:
+    """The world model run on rendered frames at 15 fps (poses in odom); the remembered points
+    in odom at the end."""
+    model = WorldModel(Config(), MOUNT)
+    rend = DepthRenderer(D435_848x480, MOUNT, base_z=BASE_LINK_HEIGHT_M, seed=2)
+    pts = np.empty((0, 2))
+    for k, (pose, scene) in enumerate(zip(poses, scenes)):
+        t = k / 15.0
+        world = model.update(DepthFrame(rend.render(pose, scene, noise=True), t, k, D435_848x480),
+                             Odometry(t=t, x=pose[0], y=pose[1], theta=pose[2]))
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        pb = world.points_base
+        pts = np.column_stack([pose[0] + c * pb[:, 0] - s * pb[:, 1],
+                               pose[1] + s * pb[:, 0] + c * pb[:, 1]])
+    return pts
+
+
+def test_a_passer_by_s_trail_beside_the_robot_decays():
+    """Nothing static stands where a person walks: cells inside a moving track's disc are the
+    person's trail and decay. Held beside the robot, out of view, such a trail stood a robot
+    still among people who had walked on (29 cells here before)."""
+    ts = np.arange(int(14.0 * 15)) / 15.0
+    # a walker crosses 1 m ahead at 0.6 m/s; the robot drives 0.8 m as they pass
+    xs = 0.25 * np.clip(ts - 5.0, 0.0, 3.2)
+    pts = _world_after([(x, 0.0, 0.0) for x in xs],
+                       [Scene([Cylinder(1.0, 3.8 - 0.6 * t, 0.2)]) for t in ts])
+    near = np.hypot(pts[:, 0] - xs[-1], pts[:, 1]) < 1.0
+    assert np.count_nonzero(near) <= 2
+
+
+def test_a_person_standing_beside_the_robot_out_of_view_is_kept():
+    """A standing person (a stationary track) is no trail: seen, then left out of view by the
+    robot's turn, they are kept past decay_s."""
+    ts = np.arange(int(9.0 * 15)) / 15.0
+    theta = math.radians(90.0) * np.clip(ts - 2.0, 0.0, 1.0)  # face them 2 s, turn away
+    person = Scene([Cylinder(0.8, 0.0, 0.2)])
+    pts = _world_after([(0.0, 0.0, th) for th in theta], [person] * len(ts))
+    assert np.count_nonzero(np.hypot(pts[:, 0] - 0.8, pts[:, 1]) < 0.3) >= 3
+
+
 def test_a_corner_beside_the_robot_at_the_view_s_edge_is_not_cleared_by_rays_that_miss_it():
     """Perception bins rays by their bearing from the camera, which sits ahead of base_link:
     a cell close beside the robot lies inside the view by its bearing from base_link but
@@ -98,6 +140,31 @@ def test_a_corner_beside_the_robot_at_the_view_s_edge_is_not_cleared_by_rays_tha
     ahead.update(np.empty((0, 2), np.float32), (0.0, 0.0, 0.0), free_scan(4.0), no_unknown(),
                  BINS, 0.1, view=PER.view)
     assert len(ahead) == 0 and ahead.cleared_total == 1
+
+
+def test_a_cell_inside_the_minimum_range_is_cleared_by_the_floor_seen_behind_it():
+    """The camera measures nothing closer than its minimum range, but a body there blanks the
+    floor behind it and perception marks the bin blind. A passer-by's cells left in front of
+    the robot, closer than that range, are cleared once the bins see their floor (they held a
+    robot still among people who had walked on); a body that is really there is kept."""
+    person = Cylinder(0.7, 0.0, 0.25)  # its front 0.45 m ahead of base_link
+    here, closer = (0.0, 0.0, 0.0), (0.2, 0.0, 0.0)  # 0.2 m on, the front is 0.25 m away
+    assert 0.25 < float(PER.view.near_range.min())  # inside the minimum range there
+    for there, kept in ((Scene([person]), True), (Scene([]), False)):
+        mem = ObstacleMemory(ObstacleMemoryConfig(decay_s=3.0))
+        mem.update_from(render(here, Scene([person])), here, t=0.0, view=PER.view)
+        front = mem.points_base(closer)
+        front = front[np.hypot(*front.T) < PER.view.near_range[0]]
+        assert len(front) > 0
+        for k in range(1, 60):  # 6 s, twice decay_s
+            out = render(closer, there)
+            mem.update_from(out, closer, t=0.1 * k, view=PER.view)
+        ahead = mem.points_base(closer)
+        ahead = ahead[(np.hypot(*ahead.T) < PER.view.near_range[0]) & (ahead[:, 0] > 0.1)]
+        if kept:
+            assert out.blind[NB // 2] and len(ahead) >= len(front) // 2
+        else:
+            assert not out.unknown[NB // 2] and len(ahead) == 0
 
 
 def test_remembered_point_seen_through_is_cleared():

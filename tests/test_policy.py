@@ -186,6 +186,21 @@ def test_non_finite_odometry_or_observation_never_reaches_the_actor(monkeypatch)
     assert job.summary()["nonfinite_safe_stops"] == {"odometry": 1, "observation": 1}
 
 
+def test_a_stalled_policy_is_given_an_escape_goal_away_from_what_blocks_it():
+    """The DWA job's stall recovery serves the policy too: after recovery.stall_s standing
+    short of the goal, the observation's goal is an escape goal the most open way."""
+    job, policy = job_with([-1.0, 0.0])  # a = -1 → v = 0: the policy stands
+    blocked = wall_world(0.5)
+    stall_s = Config().recovery.stall_s
+    for t in np.arange(0.0, stall_s, 0.05):
+        job.step(float(t), Odometry(t=float(t)), blocked)
+    # goal block: distance / 10 m, sin and cos of its bearing
+    np.testing.assert_allclose(policy.seen[-1][:3], [0.3, 0.0, 1.0], atol=1e-6)  # 3 m ahead
+    job.step(stall_s, Odometry(t=stall_s), blocked)
+    np.testing.assert_allclose(policy.seen[-1][:3], [0.1, 0.0, -1.0], atol=1e-6)  # 1 m behind
+    assert job.summary()["stall_escapes"] == 1
+
+
 def test_goal_reached_stops_and_finishes():
     job, _ = job_with([1.0, 0.0])
     assert job.step(0.0, Odometry(x=2.9, v=0.0), wall_world(5.0)) == STOP

@@ -4,7 +4,9 @@ shipped --variant).
 Each RUNNING cycle: DWA and the track predictions as the DWA mode does them (PlanningStep),
 the safe corridor along DWA's best path when the model's spec has a corridor block, the
 observation by the model's own spec, one actor inference, the action mapped to a twist, and the
-shield on that twist. Non-finite odometry, observation or action makes the cycle a safe stop
+shield on that twist. When the robot has stood too long short of the goal, the stall recovery
+(runtime.planning.stall_recovery) gives the observation an escape goal for a while, as it gives
+DWA in the DWA mode: the policy drives to goals, so it steps away. Non-finite odometry, observation or action makes the cycle a safe stop
 (brake at the limits' deceleration), counted and logged with the reason: the actor never sees a
 non-finite observation and its command never reaches the shield unless it is finite.
 """
@@ -25,6 +27,7 @@ from runtime.errors import ConfigError
 from runtime.perception.world_model import WorldState
 from runtime.planning.corridor import Corridor, CorridorConfig, safe_corridor
 from runtime.planning.planning_step import PlanningContext, PlanningStep
+from runtime.planning.stall_recovery import StallRecovery
 from runtime.policy.actor import Policy
 from runtime.policy.obs_spec import ObservationBuilder, ObsSpec
 from runtime.policy.shipped import variant_of
@@ -68,6 +71,7 @@ class SafeMoveJob:
                  **goal: Any) -> None:
         """`goal`: PlanningStep's arrival_radius_m and speed_limit."""
         self._planning = PlanningStep(goal_odom, config, clock, "policy", **goal)
+        self._recovery = StallRecovery(config.recovery)
         self._policy = policy
         if spec is None:
             if policy is None:
@@ -111,7 +115,9 @@ class SafeMoveJob:
         if not all(map(math.isfinite, (odom.x, odom.y, odom.theta, odom.v, odom.omega))):
             self._safe_stop("odometry", f"non-finite odometry {odom}")
             return Prepared()
-        ctx = self._planning.prepare(now, odom, world)
+        plan_goal = (None if world is None
+                     else self._recovery.planning_goal(now, odom, world, self._planning.goal))
+        ctx = self._planning.prepare(now, odom, world, plan_goal)
         if ctx is None or world is None:
             return Prepared()
         obs = self._observer.observe(ctx, odom, world)
@@ -161,6 +167,7 @@ class SafeMoveJob:
         policy = self._policy
         return {
             **self._planning.summary(),
+            "stall_escapes": self._recovery.escapes,
             "policy": None if policy is None else {
                 "model": str(policy.path),
                 "variant": variant_of(policy.path),

@@ -165,7 +165,9 @@ class ViewCone:
 
     At base_link range r in bin b the camera sees heights from
     `cam_z - low_slope[b] * (r - cam_r)` to `cam_z + high_slope[b] * (r - cam_r)` (conservative:
-    the worst column of the bin), and nothing closer than `near_range[b]`.
+    the worst column of the bin), and nothing closer than `near_range[b]`. Closer than that it
+    measures nothing, but a body there blanks the floor pixels behind it and perception marks
+    the bin blind: a bin with `floor_checked[b]` that is not unknown saw past such a body.
     """
 
     bin_angles: np.ndarray  # (bins,) rad, right to left
@@ -176,6 +178,7 @@ class ViewCone:
     low_slope: np.ndarray  # (bins,) descent of the lowest ray per metre of range
     high_slope: np.ndarray  # (bins,) rise of the highest ray per metre of range
     near_range: np.ndarray  # (bins,) base range of the minimum-range sphere
+    floor_checked: np.ndarray  # (bins,) bool, the bin has pixels that must see the floor
     range_max: float
 
     @property
@@ -289,7 +292,7 @@ class Perception:
         self._cam_proj = (tx * np.cos(self.bin_angles) + ty * np.sin(self.bin_angles)).astype(F32)
         self.view = ViewCone(self.bin_angles.astype(np.float64), self._bin_w, float(tx),
                              float(ty), float(tz), low, high, near.astype(np.float64),
-                             cfg.range_max_m)
+                             self._expected > 0, cfg.range_max_m)
 
         # preallocated per-frame buffers
         self._z = np.empty(m, dtype=F32)

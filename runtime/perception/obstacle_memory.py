@@ -9,7 +9,12 @@ arrays (`max_points` cells), so memory stays bounded whatever the scene. Each up
    than its minimum range, above or below it, or in an unknown bin): not seeing them is no
    evidence they are gone, as the tracker's coasting has it (a person standing beside the
    robot must not be forgotten while the robot turns in place and then driven into). The
-   robot looks before it forgets: a turn toward a held cell clears it if the place is empty;
+   robot looks before it forgets: a turn toward a held cell clears it if the place is empty.
+   Cells last seen as part of a walking person (`mark_moving`: within a moving track's disc)
+   are the person's trail, not an obstacle: they decay, and the track carries the person
+   (coasting out of view); held, a passer-by's trail beside or under the view froze the robot
+   among people. Cells inside the camera's minimum range are seen through when the bin saw
+   its floor (a body there would have blanked it: perception's blind test);
 2. ray clearing: a remembered cell that the current frame had in view and saw through (its range
    in its bearing bin is shorter than that bin's free range by `clear_margin_m`) is dropped.
    Only bins that are not `unknown` clear (0 ... minimum range and no-return bins are unknown,
@@ -66,6 +71,10 @@ class ObstacleMemoryConfig:
         0.1, "a cell is cleared only if the bin saw free space this much beyond it", "m",
         min=0.0, max=2.0,
     )
+    moving_track_margin_m: float = setting(
+        0.1, "a cell seen within a moving track's radius plus this is the walker's: it decays"
+        " and is not held out of view", "m", min=0.0, max=1.0,
+    )
     clear_min_range_m: float = setting(
         1.2,
         "without a view cone: cells closer than this are never cleared (they may be under the"
@@ -90,6 +99,8 @@ class ObstacleMemory:
         self._t = np.empty(c, dtype=np.float64)
         # held by the last update: unseen now and close, so alive past decay_s (see update)
         self._held = np.zeros(c, dtype=bool)
+        # last seen within a moving track's disc: a walker's trail, never held
+        self._moving = np.zeros(c, dtype=bool)
         self._n = 0
         self.t_last = -math.inf
         self.cleared_total = 0
@@ -132,7 +143,7 @@ class ObstacleMemory:
         n = self._n
         if n:
             visible, r, k = self._visible(px, py, c, s, unknown, bin_angles, view)
-            self._held[:n] = ~visible & (r <= cfg.hold_out_of_view_m)
+            self._held[:n] = ~visible & (r <= cfg.hold_out_of_view_m) & ~self._moving[:n]
             alive = ((t - self._t[:n]) <= cfg.decay_s) | self._held[:n]
             self.decayed_total += int(n - np.count_nonzero(alive))
             free = np.minimum(np.asarray(scan, dtype=np.float64)[k], cfg.range_max_m)
@@ -168,18 +179,23 @@ class ObstacleMemory:
         if view is None:
             visible &= r >= cfg.clear_min_range_m
         else:
-            visible &= r >= view.near_range[kk]
+            zlo, zhi = self._zlo[:n], self._zhi[:n]
             dr = np.maximum(r - view.cam_r, 0.0)
             z_low = view.cam_z - view.low_slope[kk] * dr
             z_high = view.cam_z + view.high_slope[kk] * dr
-            visible &= (self._zhi[:n] >= z_low) & (self._zlo[:n] <= z_high)
+            in_view = (zhi >= z_low) & (zlo <= z_high)
+            # inside the minimum range: a body spanning the view's lower half there (every ray
+            # that meets the floor) blanks the bin's floor pixels, which makes the bin blind
+            blanks_floor = view.floor_checked[kk] & (zlo <= z_low) & (zhi >= view.cam_z)
+            visible &= np.where(r >= view.near_range[kk], in_view, blanks_floor)
         return visible, r, kk
 
     def _compact(self, keep: np.ndarray) -> None:
         m = int(np.count_nonzero(keep))
         if m == self._n:
             return
-        for a in (self._key, self._x, self._y, self._zlo, self._zhi, self._t, self._held):
+        for a in (self._key, self._x, self._y, self._zlo, self._zhi, self._t, self._held,
+                  self._moving):
             a[:m] = a[: self._n][keep]
         self._n = m
 
@@ -247,6 +263,7 @@ class ObstacleMemory:
             self._zhi[slot] = np.maximum(self._zhi[slot], zhi[hit])
             self._t[slot] = t
             self._held[slot] = False
+            self._moving[slot] = False
         new = ~hit
         m = int(np.count_nonzero(new))
         cap = cfg.max_points
@@ -274,7 +291,20 @@ class ObstacleMemory:
         self._zhi[n:e] = zhi[new]
         self._t[n:e] = t
         self._held[n:e] = False
+        self._moving[n:e] = False
         self._n = e
+
+    def mark_moving(self, centres: np.ndarray, radii: np.ndarray) -> None:
+        """Mark the cells within these discs (odom centres (K, 2), radii (K,): the moving tracks
+        this frame hit) as a walker's: nothing static stands where a person walks now, so they
+        decay and are not held. A cell seen again later is judged again."""
+        n = self._n
+        if not n or not len(radii):
+            return
+        d = np.hypot(self._x[:n, None] - centres[None, :, 0],
+                     self._y[:n, None] - centres[None, :, 1])
+        inside = (d <= np.asarray(radii)[None, :] + self.config.moving_track_margin_m).any(axis=1)
+        self._moving[:n] |= inside
 
     # ------------------------------------------------------------------ queries
     def points_odom(self, t: float | None = None) -> np.ndarray:

@@ -85,6 +85,11 @@ class WorldModel:
         t2 = clock()
         tracks = self._tracker.update(self._memory.frame_points, frame.t,
                                       sensor_pose=np.array(sensor))
+        walking = [tr for tr in tracks
+                   if tr.confirmed and not tr.stationary and tr.misses == 0 and not tr.coasting]
+        if walking:
+            self._memory.mark_moving(np.array([tr.position for tr in walking]),
+                                     np.array([tr.radius for tr in walking]))
         t3 = clock()
         self.stage_s.update(perception=t1 - t0, memory=t2 - t1, tracking=t3 - t2)
         return WorldState(frame.t, out.scan.copy(), out.unknown.copy(), out.bin_angles,

@@ -1,4 +1,5 @@
-"""Stall recovery for the goal-driven DWA job: when the robot has stood for a while, step away.
+"""Stall recovery for the goal-driven jobs (DWA, SafeMove): when the robot has stood for a while,
+step away.
 
 DWA is a local planner with a short window: beside a person or an obstacle that blocks the way
 to the goal, every sample that drives on comes closer and every turn lowers the heading term,
@@ -15,8 +16,9 @@ one of them, the same for every planner decision downstream:
            `escape_distance_m` or `escape_timeout_s` has passed; then the real goal again, and a
            fresh stall timer.
 
-Every command still goes through DWA's admissibility and the shield; the escape only moves the
-goal. The goal-reached check always uses the real goal.
+Every command still goes through the shield; the escape only moves the goal DWA plans for and,
+in the SafeMove job, the goal in the policy's observation. The goal-reached check always uses
+the real goal.
 """
 
 from __future__ import annotations
