@@ -6,9 +6,10 @@ the safe corridor along DWA's best path when the model's spec has a corridor blo
 observation by the model's own spec, one actor inference, the action mapped to a twist, and the
 shield on that twist. When the robot has stood too long short of the goal, the stall recovery
 (runtime.planning.stall_recovery) gives the observation an escape goal for a while, as it gives
-DWA in the DWA mode: the policy drives to goals, so it steps away. Non-finite odometry, observation or action makes the cycle a safe stop
-(brake at the limits' deceleration), counted and logged with the reason: the actor never sees a
-non-finite observation and its command never reaches the shield unless it is finite.
+DWA in the DWA mode: the policy drives to goals, so it steps away. Non-finite odometry,
+observation or action makes the cycle a safe stop (brake at the limits' deceleration), counted
+and logged with the reason: the actor never sees a non-finite observation and its command
+never reaches the shield unless it is finite.
 """
 
 from __future__ import annotations

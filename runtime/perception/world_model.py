@@ -85,6 +85,7 @@ class WorldModel:
         t2 = clock()
         tracks = self._tracker.update(self._memory.frame_points, frame.t,
                                       sensor_pose=np.array(sensor))
+        # confirmed, moving and hit this frame: where a person walks now, nothing static stands
         walking = [tr for tr in tracks
                    if tr.confirmed and not tr.stationary and tr.misses == 0 and not tr.coasting]
         if walking:
