@@ -343,6 +343,10 @@ def add_eval(p: argparse.ArgumentParser) -> None:
     p.add_argument("--jobs", type=int_at_least(1), default=1,
                    help="worker processes (default 1)")
     _add_episode_args(p, crowd="scenario")
+    p.add_argument("--camera-hfov", type=finite_float, default=None, metavar="DEG",
+                   help="what if the depth camera saw this wide (default: the D435's 87 deg):"
+                        " renders it this wide (the D435's vertical view), and the scan's bearing span and"
+                        " bins follow (bins of the same width) unless --set gives them")
     p.add_argument("--record", type=Path, metavar="DIR",
                    help="a flight recording of every episode in DIR (<scenario>-seed<N>-….mcap:"
                         " open it in Foxglove, `safemove replay` or `safemove plot` it)")
@@ -391,6 +395,29 @@ def _plots_dir(directory: Path) -> Path:
     return directory
 
 
+def camera_view(args: argparse.Namespace) -> tuple[float, tuple[str, ...]]:
+    """eval --camera-hfov: the simulated camera's horizontal view, and the overrides with the
+    scan's bearing span and bin count widened to it (bins of the configured width), where the
+    user did not set them."""
+    from runtime.config.settings import load_config
+    from sim_stub.lockstep import D435_HFOV_DEG
+
+    overrides = tuple(args.overrides)
+    if args.camera_hfov is None:
+        return D435_HFOV_DEG, overrides
+    hfov = args.camera_hfov
+    if not 10.0 <= hfov <= 160.0:
+        raise UserError(f"eval: --camera-hfov must be in [10, 160] deg, got {hfov:g}")
+    perception = load_config(args.config, list(overrides)).config.perception
+    keys = {o.split("=", 1)[0].strip() for o in overrides}
+    if "perception.bearing_span_deg" not in keys:
+        overrides += (f"perception.bearing_span_deg={hfov:g}",)
+        if "perception.scan_bins" not in keys:
+            bins = max(1, round(perception.scan_bins * hfov / perception.bearing_span_deg))
+            overrides += (f"perception.scan_bins={bins}",)
+    return hfov, overrides
+
+
 def eval_run(args: argparse.Namespace) -> int:
     """Seeded episodes per scenario, lock-stepped through the runtime's pipeline code."""
     from sim_stub.evaluate import EvalSettings, evaluate, table
@@ -400,9 +427,11 @@ def eval_run(args: argparse.Namespace) -> int:
     if not 0 < args.fps <= 90:
         raise UserError(f"eval: --fps must be in (0, 90], got {args.fps}")
     plots = None if args.plots is None else _plots_dir(args.plots)
-    settings = EvalSettings(args.planner, args.config, tuple(args.overrides), model,
+    hfov, overrides = camera_view(args)
+    settings = EvalSettings(args.planner, args.config, overrides, model,
                             args.fps, args.noise, args.crowd, trajectories=plots is not None,
-                            record=None if args.record is None else _record_dir(args.record))
+                            record=None if args.record is None else _record_dir(args.record),
+                            camera_hfov_deg=hfov)
 
     counts: dict[str, int] = {}
 

@@ -35,7 +35,7 @@ from runtime.pipeline import Pipeline
 from runtime.policy.shipped import variant_of
 from runtime.process.cycle_record import CycleRecord
 from runtime.process.recorder import Recorder, recording_metadata
-from sim_stub.lockstep import LockstepEpisode
+from sim_stub.lockstep import D435_HFOV_DEG, LockstepEpisode
 from sim_stub.scenario import load_scenario
 
 PLANNERS = ("dwa", "safemove")
@@ -54,6 +54,7 @@ class EvalSettings:
     crowd: str = "scenario"  # scenario | reactive | oblivious: whether agents see the robot
     trajectories: bool = False  # keep each episode's Trajectory (for --plots)
     record: Path | None = None  # a flight recording of each episode in this directory
+    camera_hfov_deg: float = D435_HFOV_DEG  # the simulated depth camera's horizontal view
 
 
 @dataclass(frozen=True)
@@ -112,7 +113,8 @@ def run_episode(scenario_name: str, seed: int, settings: EvalSettings) -> Episod
     """One seeded episode to its judged end (see the module docs)."""
     loaded = load_config(settings.config_path, list(settings.overrides))
     episode = LockstepEpisode(scenario_name, seed, loaded.config, loaded.calibration,
-                              settings.fps, settings.noise, settings.crowd)
+                              settings.fps, settings.noise, settings.crowd,
+                              settings.camera_hfov_deg)
     job = make_job(settings, episode.goal_odom, loaded)
     pipeline = Pipeline(episode.config, loaded.calibration, job)
     recorder = None
@@ -239,6 +241,7 @@ def evaluate(scenarios: list[str], episodes: int, seed: int, settings: EvalSetti
         "fps": settings.fps,
         "noise": settings.noise,
         "crowd": settings.crowd,
+        "camera_hfov_deg": settings.camera_hfov_deg,
         "scenarios": {name: summarise([r for r in results if r.scenario == name])
                       for name in scenarios},
         "episodes": [r.episode_dict() for r in results],

@@ -20,7 +20,7 @@ import math
 import time
 from dataclasses import replace
 
-from drivers.depth_source import D435_848x480
+from drivers.depth_source import D435_848x480, DepthIntrinsics
 from drivers.spark.feedback import FeedbackConverter
 from drivers.spark.protocol import (
     BASE_TO_HOST,
@@ -38,6 +38,20 @@ from sim_stub.scenario import load_scenario, with_crowd
 from sim_stub.sim_server import BASE_LINK_HEIGHT_M, scene_from
 from sim_stub.world import World, base_to_world, goal_in_odom
 
+D435_HFOV_DEG = 87.0
+
+
+def widened_d435(hfov_deg: float) -> DepthIntrinsics:
+    """The D435's depth camera (848x480, its vertical view) with another horizontal view: a
+    what-if for a wider depth camera (ZED 2: 110 deg, Femto Mega wide mode: 120 deg) or for
+    cameras side by side. Pixels are no longer square; the perception's rays use fx and fy."""
+    k = D435_848x480
+    if hfov_deg == D435_HFOV_DEG:
+        return k
+    if not 0.0 < hfov_deg < 180.0:
+        raise ValueError(f"a pinhole camera's horizontal view is in (0, 180) deg, got {hfov_deg}")
+    return replace(k, fx=(k.width / 2) / math.tan(math.radians(hfov_deg) / 2))
+
 BASE_TICK_S = 0.02  # the Spark base's feedback period (50 Hz)
 
 
@@ -50,14 +64,14 @@ class LockstepEpisode:
     the true path so far."""
 
     def __init__(self, scenario: str, seed: int, cfg: Config, cal: Calibration, fps: float,
-                 noise: bool, crowd: str = "scenario") -> None:
+                 noise: bool, crowd: str = "scenario", hfov_deg: float = D435_HFOV_DEG) -> None:
         self.world = World(with_crowd(load_scenario(scenario), crowd), seed=seed,
                            limits=cfg.limits)
         w = self.world.robot
         self._start = (w.x, w.y, w.theta)
         self.goal_odom = goal_in_odom(self._start, self.world.goal)
         self._base = SparkBaseSim(BasePhysics(seed=seed), "stream", watchdog_s=0.0, t0=0.0)
-        self._renderer = DepthRenderer(D435_848x480, cal.camera, base_z=BASE_LINK_HEIGHT_M,
+        self._renderer = DepthRenderer(widened_d435(hfov_deg), cal.camera, base_z=BASE_LINK_HEIGHT_M,
                                        seed=seed, decimation=cfg.perception.decimation)
         self.config = replace(cfg, perception=replace(cfg.perception, decimation=1))
         self._noise = noise
