@@ -345,8 +345,9 @@ def add_eval(p: argparse.ArgumentParser) -> None:
     _add_episode_args(p, crowd="scenario")
     p.add_argument("--camera-hfov", type=finite_float, default=None, metavar="DEG",
                    help="what if the depth camera saw this wide (default: the D435's 87 deg):"
-                        " renders it this wide (the D435's vertical view), and the scan's bearing span and"
-                        " bins follow (bins of the same width) unless --set gives them")
+                        " renders it this wide (the D435's vertical view); the scan's bearing span and"
+                        " bins (of the same width) and the tracker's field of view follow"
+                        " unless --set gives them")
     p.add_argument("--record", type=Path, metavar="DIR",
                    help="a flight recording of every episode in DIR (<scenario>-seed<N>-….mcap:"
                         " open it in Foxglove, `safemove replay` or `safemove plot` it)")
@@ -396,9 +397,10 @@ def _plots_dir(directory: Path) -> Path:
 
 
 def camera_view(args: argparse.Namespace) -> tuple[float, tuple[str, ...]]:
-    """eval --camera-hfov: the simulated camera's horizontal view, and the overrides with the
-    scan's bearing span and bin count widened to it (bins of the configured width), where the
-    user did not set them."""
+    """eval --camera-hfov: the simulated camera's horizontal view, and the overrides that tell
+    the pipeline about it, where the user did not set them: the scan's bearing span and bin
+    count (bins of the configured width) and the tracker's field of view (its edges cut
+    clusters off)."""
     from runtime.config.settings import load_config
     from sim_stub.lockstep import D435_HFOV_DEG
 
@@ -415,6 +417,8 @@ def camera_view(args: argparse.Namespace) -> tuple[float, tuple[str, ...]]:
         if "perception.scan_bins" not in keys:
             bins = max(1, round(perception.scan_bins * hfov / perception.bearing_span_deg))
             overrides += (f"perception.scan_bins={bins}",)
+    if "tracking.field_of_view_deg" not in keys:
+        overrides += (f"tracking.field_of_view_deg={hfov:g}",)
     return hfov, overrides
 
 

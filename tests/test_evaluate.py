@@ -110,3 +110,26 @@ def test_eval_cli_progress_lines_json_result_and_bad_scenario(short_room, safemo
     bad = safemove(["eval", "--scenarios", "no_such_room"])
     assert bad.wait(timeout=30) == 2
     assert "no_such_room" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_camera_hfov_widens_the_scan_unless_told_and_a_bad_view_is_one_line(safemove):
+    from argparse import Namespace
+
+    from sim_stub.commands import camera_view
+
+    def view(hfov, *overrides):
+        return camera_view(Namespace(config=None, overrides=list(overrides), camera_hfov=hfov))
+
+    assert view(None, "loop.stats_interval_s=0") == (87.0, ("loop.stats_interval_s=0",))
+    # bins of the configured width (90 over 87 deg) across the wider view
+    assert view(120.0) == (120.0, ("perception.bearing_span_deg=120",
+                                   "perception.scan_bins=124", "tracking.field_of_view_deg=120"))
+    assert view(120.0, "perception.scan_bins=45") == (
+        120.0, ("perception.scan_bins=45", "perception.bearing_span_deg=120",
+                "tracking.field_of_view_deg=120"))
+    assert view(120.0, "perception.bearing_span_deg=90", "tracking.field_of_view_deg=90") == (
+        120.0, ("perception.bearing_span_deg=90", "tracking.field_of_view_deg=90"))
+    bad = safemove(["eval", "--camera-hfov", "200", "--episodes", "1"])
+    assert bad.wait(timeout=30) == 2
+    assert bad.stderr.strip().splitlines() == [
+        "safemove: error: eval: --camera-hfov must be in [10, 160] deg, got 200"]

@@ -19,6 +19,7 @@ from runtime.config.settings import CameraMount
 from runtime.perception.depth_points import FloorVerdict, Perception, PerceptionConfig
 from runtime.types import DepthFrame, DepthIntrinsics
 from sim_stub.depth_render import Box, Cylinder, DepthRenderer, Scene
+from sim_stub.lockstep import widened_d435
 from sim_stub.recording import record
 from sim_stub.sim_server import BASE_LINK_HEIGHT_M
 
@@ -257,3 +258,27 @@ def test_floor_check_is_due_every_nth_frame_and_its_verdict_is_held():
     out = off.process(level)
     assert not off.floor_check_due
     assert out.floor_ok is None and math.isnan(out.floor_tilt_deg)
+
+
+def test_a_wider_camera_sees_a_person_beside_the_robot_that_the_d435_cannot():
+    """eval --camera-hfov's camera: the D435's rows, a wider row of non-square pixels. A person
+    at 55 deg is outside the D435's 87 deg and inside 120 deg; the floor stays floor."""
+    person = Scene([Cylinder(1.2, 1.7, 0.25)])
+    narrow = Perception(D435_848x480, MOUNT)
+    assert len(narrow.process(renderer().render((0.0, 0.0, 0.0), person)).points) == 0
+    k = widened_d435(120.0)
+    assert k.fy == D435_848x480.fy and math.degrees(2 * math.atan(k.cx / k.fx)) == \
+        pytest.approx(120.0)
+    wide = Perception(k, MOUNT, PerceptionConfig(bearing_span_deg=120.0, scan_bins=124))
+    out = wide.process(renderer(intrinsics=k).render((0.0, 0.0, 0.0), person))
+    assert len(out.points) > 0
+    assert boundary_distance(out.points, person.cylinders[0]).max() <= 0.03
+    hit = np.flatnonzero(np.isfinite(out.scan))
+    assert np.degrees(wide.bin_angles[hit]).min() > 45.0
+    rend = renderer(intrinsics=k, seed=3)
+    for theta in (0.0, 1.0, 2.0):
+        floor = wide.process(rend.render((0.0, 0.0, theta), Scene(), noise=True))
+        assert len(floor.points) == 0 and not floor.unknown.any()
+    assert widened_d435(87.0) is D435_848x480
+    with pytest.raises(ValueError, match="180"):
+        widened_d435(180.0)
