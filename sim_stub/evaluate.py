@@ -36,7 +36,9 @@ from runtime.policy.shipped import variant_of
 from runtime.process.cycle_record import CycleRecord
 from runtime.process.recorder import Recorder, recording_metadata
 from sim_stub.lockstep import D435_HFOV_DEG, LockstepEpisode
+from sim_stub.provenance import source_commit
 from sim_stub.scenario import load_scenario
+from sim_stub.view_clock import ViewClock
 
 PLANNERS = ("dwa", "safemove")
 
@@ -85,6 +87,9 @@ class EpisodeResult:
     shield_interventions: int
     cycles: int
     job_p99_ms: float
+    # a contact with a person: how long they had been inside the camera's view without a break
+    # (sim_stub.view_clock; 0: they came from outside it); None for other episodes
+    contact_in_view_s: float | None = None
     # with EvalSettings.trajectories only; never in the JSON result (`episode_dict`)
     trajectory: Trajectory | None = field(default=None, repr=False, compare=False)
 
@@ -122,10 +127,15 @@ def run_episode(scenario_name: str, seed: int, settings: EvalSettings) -> Episod
         recorder = _episode_recorder(settings.record, scenario_name, seed, loaded, episode, job)
     job_s: list[float] = []
     robot = episode.world.robot  # the world's ground truth, updated in place
+    crowd = episode.world.crowd
+    radii = np.full(len(crowd.positions), float(episode.world.scenario.crowd.radius))
+    in_view = ViewClock(loaded.calibration.camera.translation_m[:2], settings.camera_hfov_deg,
+                        loaded.config.perception.range_max_m, len(radii))
     xy: array[float] | None = array("f", (robot.x, robot.y)) if settings.trajectories else None
     while (inp := episode.cycle()) is not None:
         if xy is not None:
             xy.extend((robot.x, robot.y))
+        in_view.update(inp.t, (robot.x, robot.y, robot.theta), crowd.positions, radii)
         cycle = pipeline.step(inp)
         job_s.append(cycle.stage_s["job"])
         episode.send(cycle.command)
@@ -157,6 +167,9 @@ def run_episode(scenario_name: str, seed: int, settings: EvalSettings) -> Episod
         shield_interventions=int(sum(summary.get("shield_interventions", {}).values())),
         cycles=episode.cycles,
         job_p99_ms=float(np.percentile(1e3 * np.array(job_s), 99)) if job_s else 0.0,
+        contact_in_view_s=(in_view.seen_for(int(out.collided_with.split()[1]), out.t)
+                           if out.collided_with and out.collided_with.startswith("agent ")
+                           else None),
         trajectory=trajectory)
 
 
@@ -235,6 +248,7 @@ def evaluate(scenarios: list[str], episodes: int, seed: int, settings: EvalSetti
         trajectories.extend(r.trajectory for r in results)
     model = settings.model if settings.planner == "safemove" else None
     return {
+        "commit": source_commit(),
         "planner": settings.planner,
         "model": None if model is None else str(model),
         "variant": None if model is None else variant_of(model),

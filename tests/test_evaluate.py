@@ -36,6 +36,7 @@ def test_dwa_reaches_the_goal_around_a_box_and_episodes_repeat_exactly(short_roo
     assert 2.3 < a.path_length_m < 3.2
     assert 0.1 < a.path_length_m / a.time_s <= 0.3 + 1e-9
     assert a.min_separation_m == math.inf  # nobody in the room
+    assert a.contact_in_view_s is None  # nobody to have seen
     assert a.cycles >= a.time_s * 20 - 1  # one planning cycle per 50 ms of simulated time
     # no wall clock in an episode: the same seed gives the same episode
     b = run_episode(short_room, 5, SETTINGS)

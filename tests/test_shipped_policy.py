@@ -184,6 +184,9 @@ def test_ship_installs_the_run_with_its_records(models, tiny_room, tmp_path, cap
     assert policy.training["recipe"] == "bc-td3" and "run" not in policy.training
     (table,) = policy.evaluation["tables"]
     assert table["planner"] == "safemove" and table["scenarios"]["tiny_room"]["episodes"] == 1
+    # which code evaluated it, with which camera
+    assert table["commit"] == json.loads(result.read_text())["commit"]
+    assert table["camera_hfov_deg"] == 87.0
     assert shipped.shipped_variants() == ["safemove"]
 
 
@@ -201,6 +204,26 @@ def test_ship_takes_an_evaluation_of_the_run_before_it_moved(models, tmp_path, c
     assert main(["ship", str(run), "--eval", str(result)]) == 0
     assert shipped.shipped_variants() == ["safemove"]
     assert "actor" not in Policy(models / "safemove.onnx", PolicyConfig()).training
+
+
+def test_ship_takes_an_evaluation_of_an_installed_copy_of_the_run(models, tmp_path, capsys):
+    """eval --variant evaluates the installed file: the run's graph with other metadata. It
+    counts for the run; an actor with other weights does not."""
+    run = _run_dir(tmp_path, "safemove")
+    installed = models / "safemove.onnx"
+    installed.write_bytes((run / "actor.onnx").read_bytes())
+    stamp(installed, {"steps": 1}, {"tables": []})
+    other = tmp_path / "other.onnx"
+    write_random_actor(other, seed=1)
+    for model, code in ((installed, 0), (other, 2)):
+        result = tmp_path / "eval.json"
+        result.write_text(json.dumps({"planner": "safemove", "model": str(model),
+                                      "crowd": "scenario", "noise": True, "fps": 15.0,
+                                      "scenarios": {}}))
+        assert main(["ship", str(run), "--eval", str(result)]) == code
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"evaluates {other}, not this run's" in err[0]
+    assert Policy(installed, PolicyConfig()).training["steps"] == 10  # shipped from the run
 
 
 @pytest.mark.parametrize("spec_name, eval_model, needle", [

@@ -35,6 +35,7 @@ from runtime.config.settings import load_config
 from runtime.errors import UserError
 from runtime.policy.obs_spec import PRESETS, load_spec
 from sim_stub.progress import Progress
+from sim_stub.provenance import source_commit
 from sim_stub.scenario import CROWD_MODES, load_scenario
 from sim_stub.train.reward import KINDS, RewardConfig
 
@@ -173,23 +174,6 @@ def run_train(args: argparse.Namespace) -> dict[str, Any]:
         json.dumps({**summary, "settings": settings, "commit": commit}, indent=1),
         encoding="utf-8")
     return summary
-
-
-def source_commit() -> str | None:
-    """The git commit this code was run from ("+dirty" with uncommitted changes), or None
-    outside a git checkout (an installed package)."""
-    import subprocess
-
-    root = Path(__file__).resolve().parents[2]
-    try:
-        head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True,
-                              text=True, check=True, timeout=10).stdout.strip()
-        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain",
-                                "--untracked-files=no"], capture_output=True, text=True,
-                               check=True, timeout=10).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        return None
-    return head + ("+dirty" if dirty else "")
 
 
 def _start(model: Any, args: argparse.Namespace, out: Path) -> dict[str, Any]:

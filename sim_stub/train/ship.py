@@ -2,7 +2,8 @@
 its variant (`runtime/policy/models/<spec name>.onnx`), carrying how it was trained (the run's
 summary.json: commit, seed, steps, wall time, the recipe's settings) and how it scored (the
 `safemove eval --json` results given, one per table: per scenario, the crowd, the episodes and
-the rates) in its metadata (`export.ship.stamp`).
+the rates) in its metadata (`export.ship.stamp`). An evaluation counts for the run when it
+evaluated the run's actor or a copy of it (the installed file, evaluated with --variant).
 
 The variant is the run's spec: a run trained on a spec that is not one of the presets cannot
 ship as one. The copy is written beside the target and renamed over it, so an interrupted ship
@@ -40,10 +41,28 @@ def evaluation_record(result: dict[str, Any], source: Path) -> dict[str, Any]:
         scenarios = {Path(name).stem: {"episodes": r["episodes"],
                                        **{k: r[k] for k in EVAL_KEYS}}
                      for name, r in result["scenarios"].items()}
-        return {"planner": result["planner"], "crowd": result["crowd"], "noise": result["noise"],
-                "fps": result["fps"], "scenarios": scenarios}
+        record: dict[str, Any] = {"planner": result["planner"], "crowd": result["crowd"],
+                                  "noise": result["noise"], "fps": result["fps"],
+                                  "scenarios": scenarios}
     except (KeyError, TypeError, AttributeError) as exc:
         raise UserError(f"{source}: not a `safemove eval --json` result (missing {exc})") from None
+    # what evaluated it, where the result says (results before these fields have none)
+    record.update({k: result[k] for k in ("commit", "camera_hfov_deg") if k in result})
+    return record
+
+
+def same_graph(model: Path, actor: Path) -> bool:
+    """Whether `model` is a copy of `actor`: the same graph, weights included (the metadata may
+    differ: an installed copy carries its records). An evaluation of the shipped file (eval
+    --variant) therefore counts for the run it was shipped from."""
+    import onnx
+    from google.protobuf.message import DecodeError
+
+    try:
+        return bool(onnx.load(model).graph.SerializeToString()
+                    == onnx.load(actor).graph.SerializeToString())
+    except (OSError, DecodeError):
+        return False
 
 
 def ship(run_dir: Path, evaluations: list[Path]) -> Path:
@@ -71,8 +90,10 @@ def ship(run_dir: Path, evaluations: list[Path]) -> Path:
         if not isinstance(result, dict) or result.get("planner") != "safemove":
             raise UserError(f"{path}: not a `safemove eval --planner safemove --json` result")
         model = result.get("model")
-        if not isinstance(model, str) or Path(model).resolve() not in actors:
-            raise UserError(f"{path}: evaluates {model}, not this run's {actor}")
+        if not isinstance(model, str) or (Path(model).resolve() not in actors
+                                          and not same_graph(Path(model), actor)):
+            raise UserError(f"{path}: evaluates {model}, not this run's {actor} (nor a copy"
+                            " of it)")
         records.append(evaluation_record(result, path))
     target = shipped.MODELS_DIR / f"{variant}.onnx"
     target.parent.mkdir(parents=True, exist_ok=True)
