@@ -345,7 +345,7 @@ def add_eval(p: argparse.ArgumentParser) -> None:
     _add_episode_args(p, crowd="scenario")
     p.add_argument("--camera-hfov", type=finite_float, default=None, metavar="DEG",
                    help="what if the depth camera saw this wide (default: the D435's 87 deg):"
-                        " renders it this wide (the D435's vertical view); the scan's bearing span and"
+                        " renders it this wide (the D435's pixels, more columns); the scan's bearing span and"
                         " bins (of the same width) and the tracker's field of view follow"
                         " unless --set gives them")
     p.add_argument("--record", type=Path, metavar="DIR",

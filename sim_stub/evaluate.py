@@ -227,6 +227,7 @@ def evaluate(scenarios: list[str], episodes: int, seed: int, settings: EvalSetti
     Returns the per-scenario summaries and every episode, in task order; `trajectories`, when
     given, gets each episode's trajectory in the same order (None unless
     `settings.trajectories`)."""
+    commit = source_commit()  # the code that runs, taken before it does
     for name in scenarios:
         load_scenario(name)  # a bad name or file fails here, once, with its message
     load_config(settings.config_path, list(settings.overrides))
@@ -248,7 +249,7 @@ def evaluate(scenarios: list[str], episodes: int, seed: int, settings: EvalSetti
         trajectories.extend(r.trajectory for r in results)
     model = settings.model if settings.planner == "safemove" else None
     return {
-        "commit": source_commit(),
+        "commit": commit,
         "planner": settings.planner,
         "model": None if model is None else str(model),
         "variant": None if model is None else variant_of(model),

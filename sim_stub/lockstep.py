@@ -42,15 +42,19 @@ D435_HFOV_DEG = 87.0
 
 
 def widened_d435(hfov_deg: float) -> DepthIntrinsics:
-    """The D435's depth camera (848x480, its vertical view) with another horizontal view: a
-    what-if for a wider depth camera (ZED 2: 110 deg, Femto Mega wide mode: 120 deg) or for
-    cameras side by side. Pixels are no longer square; the perception's rays use fx and fy."""
+    """The D435's depth camera with a wider (or narrower) sensor: its pixels and vertical view
+    kept (fx = fy, 480 rows), as many columns as the horizontal view needs. A what-if for a
+    wider depth camera, or cameras side by side, at the D435's angular resolution (spreading
+    848 columns over a wider view instead makes a bin a few pixels wide, and the few invalid
+    pixels at an object's edge then blind whole bins)."""
     k = D435_848x480
     if hfov_deg == D435_HFOV_DEG:
         return k
     if not 0.0 < hfov_deg < 180.0:
         raise ValueError(f"a pinhole camera's horizontal view is in (0, 180) deg, got {hfov_deg}")
-    return replace(k, fx=(k.width / 2) / math.tan(math.radians(hfov_deg) / 2))
+    half_width = round(k.fx * math.tan(math.radians(hfov_deg) / 2))
+    return replace(k, width=2 * half_width, cx=float(half_width))
+
 
 BASE_TICK_S = 0.02  # the Spark base's feedback period (50 Hz)
 
