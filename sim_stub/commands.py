@@ -345,9 +345,9 @@ def add_eval(p: argparse.ArgumentParser) -> None:
     _add_episode_args(p, crowd="scenario")
     p.add_argument("--camera-hfov", type=finite_float, default=None, metavar="DEG",
                    help="what if the depth camera saw this wide (default: the D435's 87 deg):"
-                        " renders it this wide (the D435's pixels, more columns); the scan's bearing span and"
-                        " bins (of the same width) and the tracker's field of view follow"
-                        " unless --set gives them")
+                        " renders it this wide (the D435's pixels, more columns); the scan's"
+                        " bearing span and bins (of the same width) and the tracker's field of"
+                        " view follow unless --set gives them")
     p.add_argument("--record", type=Path, metavar="DIR",
                    help="a flight recording of every episode in DIR (<scenario>-seed<N>-….mcap:"
                         " open it in Foxglove, `safemove replay` or `safemove plot` it)")
