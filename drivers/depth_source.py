@@ -13,11 +13,20 @@ from typing import Protocol, runtime_checkable
 
 from runtime.types import DepthFrame, DepthIntrinsics
 
-__all__ = ["CountedDepthSource", "D435_848x480", "DepthFrame", "DepthIntrinsics", "DepthSource"]
+__all__ = [
+    "D435_HFOV_DEG",
+    "CountedDepthSource",
+    "D435_848x480",
+    "DepthFrame",
+    "DepthIntrinsics",
+    "DepthSource",
+]
+
+D435_HFOV_DEG = 87.0  # the D435's depth field of view, horizontal
 
 
 def _d435_848x480() -> DepthIntrinsics:
-    f = (848 / 2) / math.tan(math.radians(87.0) / 2)
+    f = (848 / 2) / math.tan(math.radians(D435_HFOV_DEG) / 2)
     return DepthIntrinsics(width=848, height=480, fx=f, fy=f, cx=424.0, cy=240.0, depth_unit_m=0.001)
 
 

@@ -401,8 +401,8 @@ def camera_view(args: argparse.Namespace) -> tuple[float, tuple[str, ...]]:
     the pipeline about it, where the user did not set them: the scan's bearing span and bin
     count (bins of the configured width) and the tracker's field of view (its edges cut
     clusters off)."""
+    from drivers.depth_source import D435_HFOV_DEG
     from runtime.config.settings import load_config
-    from sim_stub.lockstep import D435_HFOV_DEG
 
     overrides = tuple(args.overrides)
     if args.camera_hfov is None:

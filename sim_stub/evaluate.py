@@ -30,12 +30,13 @@ from typing import Any
 
 import numpy as np
 
+from drivers.depth_source import D435_HFOV_DEG
 from runtime.config.settings import LoadedConfig, load_config
 from runtime.pipeline import Pipeline
 from runtime.policy.shipped import variant_of
 from runtime.process.cycle_record import CycleRecord
 from runtime.process.recorder import Recorder, recording_metadata
-from sim_stub.lockstep import D435_HFOV_DEG, LockstepEpisode
+from sim_stub.lockstep import LockstepEpisode
 from sim_stub.provenance import source_commit
 from sim_stub.scenario import load_scenario
 from sim_stub.view_clock import ViewClock

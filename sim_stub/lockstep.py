@@ -20,7 +20,7 @@ import math
 import time
 from dataclasses import replace
 
-from drivers.depth_source import D435_848x480, DepthIntrinsics
+from drivers.depth_source import D435_HFOV_DEG, D435_848x480, DepthIntrinsics
 from drivers.spark.feedback import FeedbackConverter
 from drivers.spark.protocol import (
     BASE_TO_HOST,
@@ -37,8 +37,6 @@ from sim_stub.depth_render import DepthRenderer
 from sim_stub.scenario import load_scenario, with_crowd
 from sim_stub.sim_server import BASE_LINK_HEIGHT_M, scene_from
 from sim_stub.world import World, base_to_world, goal_in_odom
-
-D435_HFOV_DEG = 87.0
 
 
 def widened_d435(hfov_deg: float) -> DepthIntrinsics:
@@ -75,8 +73,9 @@ class LockstepEpisode:
         self._start = (w.x, w.y, w.theta)
         self.goal_odom = goal_in_odom(self._start, self.world.goal)
         self._base = SparkBaseSim(BasePhysics(seed=seed), "stream", watchdog_s=0.0, t0=0.0)
-        self._renderer = DepthRenderer(widened_d435(hfov_deg), cal.camera, base_z=BASE_LINK_HEIGHT_M,
-                                       seed=seed, decimation=cfg.perception.decimation)
+        self._renderer = DepthRenderer(widened_d435(hfov_deg), cal.camera,
+                                       base_z=BASE_LINK_HEIGHT_M, seed=seed,
+                                       decimation=cfg.perception.decimation)
         self.config = replace(cfg, perception=replace(cfg.perception, decimation=1))
         self._noise = noise
         self._parser = FrameParser(BASE_TO_HOST)

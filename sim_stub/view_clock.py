@@ -14,6 +14,8 @@ import math
 
 import numpy as np
 
+from runtime.geometry import into_frame
+
 
 class ViewClock:
     """Per person, the time since they last entered the view (NaN while outside it)."""
@@ -29,9 +31,8 @@ class ViewClock:
                 radii: np.ndarray) -> np.ndarray:
         """Whether any part of each person's disc is inside the camera's wedge (N,)."""
         x, y, th = robot_pose
-        c, s = math.cos(th), math.sin(th)
-        dx, dy = positions[:, 0] - x, positions[:, 1] - y
-        bx, by = c * dx + s * dy - self._cam[0], -s * dx + c * dy - self._cam[1]
+        bx, by = into_frame(positions[:, 0] - x, positions[:, 1] - y, th)
+        bx, by = bx - self._cam[0], by - self._cam[1]
         dist = np.hypot(bx, by)
         # the disc's angular half-width seen from the camera (the whole circle when inside it)
         spread = np.arcsin(np.clip(radii / np.maximum(dist, 1e-9), 0.0, 1.0))
