@@ -241,16 +241,17 @@ class SlowCamera:
 
 
 def recorded_run(tmp_path: Path, job, recorder_cls: type[Recorder] = Recorder,
-                 handoff=None) -> Path:
+                 handoff=None, clock: SimClock | None = None,
+                 link: FreshFeedbackLink | None = None) -> Path:
     """12 cycles of the loop on simulated time with `job`, recorded: the one file."""
     from runtime.process.loop import ControlLoop
     from runtime.process.sdnotify import SystemdNotifier
 
     loaded = load_config(None, [])
-    clock = SimClock()
+    clock = clock or SimClock()
     rec = recorder_cls(tmp_path, RecorderConfig(), loaded.calibration.camera,
                        loaded.config.perception.decimation, recording_metadata(loaded, job))
-    loop = ControlLoop(loaded.config, loaded.calibration, FreshFeedbackLink(clock), job,
+    loop = ControlLoop(loaded.config, loaded.calibration, link or FreshFeedbackLink(clock), job,
                        SystemdNotifier(None), clock=clock, max_cycles=12,
                        depth=SlowCamera(clock), wait=clock.wait, control=handoff, recorder=rec)
     rec.start()
@@ -284,25 +285,79 @@ def test_a_goal_given_during_start_up_is_replayed_before_the_first_cycle(tmp_pat
     that pass of the control socket with the first cycle, so the replay starts as the robot
     did: already navigating."""
     from runtime.control.protocol import Request, Waypoint
-    from runtime.jobs.dwa import DWAJob
-    from runtime.jobs.mission import MissionJob
     from runtime.process.control_server import ControlHandoff
     from runtime.process.replay import replay
 
-    cfg = load_config(None, []).config
     handoff = ControlHandoff()
-    job = MissionJob(cfg.control, "dwa",
-                     lambda goal, tol, speed: DWAJob(goal, cfg, None, arrival_radius_m=tol,
-                                                     speed_limit=speed),
-                     handoff.post_event)
     handoff.commands.append((7, Request("goal", "g", (Waypoint(2.0, 0.0),))))
-    path = recorded_run(tmp_path, job, handoff=handoff)
+    path = recorded_run(tmp_path, mission_job(handoff), handoff=handoff)
     first = json.loads(read(path)[1]["/cycle"][0])
     [init] = first["startup_control"]
     assert init["hold"].startswith("INIT") and init["commands"][0]["request"]["type"] == "goal"
     assert first["command"]["v"] > 0  # the first cycle already drove toward the goal
     result = replay(path)
     assert (result["cycles"], result["differing_commands"]) == (12, 0), result
+
+
+def mission_job(handoff, clock=None):
+    """The service's job; its DWA budgets on `clock` (None: counts, as lock-stepped)."""
+    from runtime.jobs.dwa import DWAJob
+    from runtime.jobs.mission import MissionJob
+
+    cfg = load_config(None, []).config
+    return MissionJob(cfg.control, "dwa",
+                      lambda goal, tol, speed: DWAJob(goal, cfg, clock, arrival_radius_m=tol,
+                                                      speed_limit=speed),
+                      handoff.post_event)
+
+
+class BusyClock(SimClock):
+    """Unit-test double: simulated time that moves on at every reading, as on a loaded
+    machine, so the DWA's and the shield's time budgets cut their work short."""
+
+    def __call__(self) -> float:
+        self.now += 0.0005
+        return self.now
+
+
+class CancelsWhileDriving(FreshFeedbackLink):
+    """Unit-test double: a client's cancel reaches the control socket while the base takes
+    the `at`-th command that moves the robot."""
+
+    def __init__(self, clock, handoff, at: int) -> None:
+        super().__init__(clock)
+        self._handoff, self._at = handoff, at
+
+    def set_command(self, twist, now: float) -> None:
+        super().set_command(twist, now)
+        if sum(c.v > 0 for c in self.commands) == self._at and twist.v > 0:
+            from runtime.control.protocol import Request
+
+            self._handoff.commands.append((7, Request("cancel", "c")))
+
+
+def test_the_cycle_a_cancel_follows_records_the_decision_of_the_planner_that_drove_it(
+        tmp_path):
+    """A cancel (or a new goal) applied after a cycle drops that cycle's planner; the record
+    still carries the dropped planner's budgets and shield decision, so the replay repeats
+    the cycle as it ran, budgets cut short included (on a loaded machine they are)."""
+    from runtime.control.protocol import Request, Waypoint
+    from runtime.process.control_server import ControlHandoff
+    from runtime.process.replay import replay
+
+    handoff = ControlHandoff()
+    handoff.commands.append((7, Request("goal", "g", (Waypoint(2.0, 0.0),))))
+    clock = BusyClock()
+    path = recorded_run(tmp_path, mission_job(handoff, clock), handoff=handoff, clock=clock,
+                        link=CancelsWhileDriving(clock, handoff, at=6))
+    cycles = [json.loads(m) for m in read(path)[1]["/cycle"]]
+    [cancelled] = [c for c in cycles
+                   if any(a["request"]["type"] == "cancel" for a in c["commands"])]
+    assert cancelled["command"]["v"] > 0 and cancelled["shield"] is not None
+    assert cancelled["budgets"]["dwa"][1], cancelled["budgets"]  # the busy clock cut it
+    result = replay(path)
+    assert (result["cycles"], result["differing_commands"],
+            result["differing_shield_decisions"]) == (12, 0, 0), result
 
 
 class DropsCycle(Recorder):

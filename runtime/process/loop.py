@@ -29,7 +29,7 @@ from runtime.process.cycle_record import CycleRecord
 from runtime.process.recorder import Recorder
 from runtime.process.sdnotify import SystemdNotifier
 from runtime.process.timing import RateKeeper, RingStats
-from runtime.types import STOP, DepthFrame, Odometry, Twist, WheelIncrement
+from runtime.types import STOP, DecisionTrace, DepthFrame, Odometry, Twist, WheelIncrement
 
 log = logging.getLogger("safemove.loop")
 
@@ -365,13 +365,16 @@ class ControlLoop:
             t5_floor = clock()
             rec(ch["floor_check"], t5_floor - t5)
             t5 = t5_floor
+            # the decision of the planner that drove this cycle, taken before the control
+            # socket's commands can replace or drop that planner (a cancel, a new goal)
+            decided = self._decision_trace(out) if self._recorder is not None else None
             if self._control is not None:
                 self._serve_control(t5, out.hold)
                 t5_control = clock()
                 rec(ch["control"], t5_control - t5)
                 t5 = t5_control
             if self._recorder is not None:
-                self._record(inp, out)
+                self._record(inp, out, decided)
                 t5_record = clock()
                 rec(ch["record"], t5_record - t5)
                 t5 = t5_record
@@ -415,10 +418,15 @@ class ControlLoop:
                 self._applied.append({"request": asdict(request), "ok": answer.get("ok")})
         self._publish_status(now, hold)
 
-    def _record(self, inp: CycleInput, out: CycleResult) -> None:
+    def _decision_trace(self, out: CycleResult) -> DecisionTrace | None:
+        """The job's trace of this cycle's decision (None: the cycle held, or a job without
+        one)."""
+        trace = getattr(self._job, "trace", None)
+        return trace() if trace is not None and out.hold is None else None
+
+    def _record(self, inp: CycleInput, out: CycleResult, decided: DecisionTrace | None) -> None:
         """Hand the cycle to the recorder: references only (see flight_messages.CycleRecord)."""
         assert self._recorder is not None
-        trace = getattr(self._job, "trace", None)
         applied, self._applied = tuple(self._applied), []
         frames = tuple(inp.frames)
         if self._startup_depth is not None:
@@ -427,7 +435,7 @@ class ControlLoop:
         self._recorder.offer(CycleRecord(
             inp.t, self.state.value, tuple(inp.increments), frames,
             self._pipeline.perceived_now, inp.feedback_t, out,
-            trace() if trace is not None and out.hold is None else None, applied,
+            decided, applied,
             self._control_t, startup))
 
     def _publish_status(self, now: float, hold: str | None) -> None:
