@@ -267,6 +267,18 @@ def dwa_job():
     return DWAJob((2.0, 0.0), load_config(None, []).config, None)
 
 
+def mission_job(handoff, clock=None):
+    """The service's job; its DWA budgets on `clock` (None: counts, as lock-stepped)."""
+    from runtime.jobs.dwa import DWAJob
+    from runtime.jobs.mission import MissionJob
+
+    cfg = load_config(None, []).config
+    return MissionJob(cfg.control, "dwa",
+                      lambda goal, tol, speed: DWAJob(goal, cfg, clock, arrival_radius_m=tol,
+                                                      speed_limit=speed),
+                      handoff.post_event)
+
+
 def test_a_frame_taken_before_the_first_cycle_is_recorded_with_it(tmp_path):
     """The loop's start-up admits the first frame before any cycle runs (INIT waits for it);
     the first cycle, which plans on it, records it, so the recording replays from cycle 0."""
@@ -297,18 +309,6 @@ def test_a_goal_given_during_start_up_is_replayed_before_the_first_cycle(tmp_pat
     assert first["command"]["v"] > 0  # the first cycle already drove toward the goal
     result = replay(path)
     assert (result["cycles"], result["differing_commands"]) == (12, 0), result
-
-
-def mission_job(handoff, clock=None):
-    """The service's job; its DWA budgets on `clock` (None: counts, as lock-stepped)."""
-    from runtime.jobs.dwa import DWAJob
-    from runtime.jobs.mission import MissionJob
-
-    cfg = load_config(None, []).config
-    return MissionJob(cfg.control, "dwa",
-                      lambda goal, tol, speed: DWAJob(goal, cfg, clock, arrival_radius_m=tol,
-                                                      speed_limit=speed),
-                      handoff.post_event)
 
 
 class BusyClock(SimClock):
