@@ -91,6 +91,9 @@ class EpisodeResult:
     # a contact with a person: how long they had been inside the camera's view without a break
     # (sim_stub.view_clock; 0: they came from outside it); None for other episodes
     contact_in_view_s: float | None = None
+    # the stall recovery (runtime.planning.stall_recovery): escapes, and takeovers of a policy
+    stall_escapes: int = 0
+    dwa_takeovers: int = 0
     # with EvalSettings.trajectories only; never in the JSON result (`episode_dict`)
     trajectory: Trajectory | None = field(default=None, repr=False, compare=False)
 
@@ -171,6 +174,8 @@ def run_episode(scenario_name: str, seed: int, settings: EvalSettings) -> Episod
         contact_in_view_s=(in_view.seen_for(int(out.collided_with.split()[1]), out.t)
                            if out.collided_with and out.collided_with.startswith("agent ")
                            else None),
+        stall_escapes=int(summary.get("stall_escapes", 0)),
+        dwa_takeovers=int(summary.get("dwa_takeovers", 0)),
         trajectory=trajectory)
 
 
@@ -216,6 +221,8 @@ def summarise(results: list[EpisodeResult]) -> dict[str, Any]:
         "shield_interventions": sum(r.shield_interventions for r in results),
         "shield_interventions_per_episode": sum(r.shield_interventions for r in results) / n,
         "min_separation_m": float(min(r.min_separation_m for r in results)),
+        "stall_escapes": sum(r.stall_escapes for r in results),
+        "dwa_takeovers": sum(r.dwa_takeovers for r in results),
         "job_p99_ms": float(max(r.job_p99_ms for r in results)),
     }
 

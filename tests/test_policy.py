@@ -201,6 +201,29 @@ def test_a_stalled_policy_is_given_an_escape_goal_away_from_what_blocks_it():
     assert job.summary()["stall_escapes"] == 1
 
 
+def test_a_policy_stalled_with_the_way_clear_hands_the_drive_to_dwa():
+    """The policy stands with its goal 0.4 m away, 45° to the side, nothing near: after
+    recovery.stall_s the command is DWA's best sample through the shield, the actor unasked;
+    once the takeover has run its time, the policy drives again."""
+    job = SafeMoveJob((0.28, -0.28), Config(), FixedPolicy([-1.0, 0.0]),
+                      lambda: 0.0)  # type: ignore[arg-type]
+    policy = job._policy
+    open_room = wall_world(10.0)
+    cfg = Config().recovery
+    for t in np.arange(0.0, cfg.stall_s, 0.05):
+        assert job.step(float(t), Odometry(t=float(t)), open_room).v == pytest.approx(0.0)
+    asked = len(policy.seen)
+    cmd = job.step(cfg.stall_s, Odometry(t=cfg.stall_s), open_room)
+    best = job.planning.last_context.dwa.best
+    assert (cmd.v, cmd.omega) == pytest.approx(best) and best[0] > 0.0
+    assert len(policy.seen) == asked  # the actor was not asked
+    trace = job.trace()
+    assert trace.observation is not None and trace.action is None
+    assert job.summary()["dwa_takeovers"] == 1 and job.summary()["stall_escapes"] == 0
+    job.step(cfg.stall_s + cfg.escape_timeout_s, Odometry(t=cfg.stall_s), open_room)
+    assert len(policy.seen) == asked + 1  # the policy again
+
+
 def test_goal_reached_stops_and_finishes():
     job, _ = job_with([1.0, 0.0])
     assert job.step(0.0, Odometry(x=2.9, v=0.0), wall_world(5.0)) == STOP

@@ -1,10 +1,12 @@
-"""Stall recovery: when it starts an escape, where the escape goal lies, when it ends."""
+"""Stall recovery: when it starts an escape or a takeover, where the escape goal lies, when
+either ends."""
 
 from __future__ import annotations
 
 import math
 
 import numpy as np
+import pytest
 
 from runtime.perception.tracking import Track
 from runtime.perception.world_model import WorldState
@@ -13,6 +15,7 @@ from runtime.planning.stall_recovery import (
     StallRecovery,
     obstacles_odom,
     open_heading,
+    way_gap,
 )
 from runtime.types import Odometry
 
@@ -73,6 +76,59 @@ def test_no_escape_with_nothing_to_step_away_from_or_when_switched_off():
     for t in np.arange(0.0, 5.0, 0.05):
         assert off.planning_goal(float(t), Odometry(), world([(0.3, 0.0)]), GOAL) is GOAL
     assert rec.escapes == off.escapes == 0
+
+
+def test_a_policy_stalled_with_the_way_to_the_goal_clear_is_taken_over_by_dwa(caplog):
+    caplog.set_level("INFO", logger="safemove.planner")
+    """The shipped policy stood 0.4 m beside a mission's waypoint with nothing near: no escape
+    (nothing to step away from), so DWA drives toward the real goal until it has travelled
+    escape_distance_m or escape_timeout_s has passed."""
+    cfg = RecoveryConfig(stall_s=2.0, escape_distance_m=0.4, escape_timeout_s=5.0)
+    rec = StallRecovery(cfg, takeover_radius_m=0.17)
+    goal = np.array([0.0, -0.4])  # beside the robot
+    far_box = world(points_base=[(2.0, 0.0)])
+    for t in np.arange(0.0, 2.0, 0.05):
+        assert rec.planning_goal(float(t), Odometry(), far_box, goal) is goal
+        assert not rec.dwa_drives
+    assert rec.planning_goal(2.0, Odometry(), far_box, goal) is goal
+    assert rec.dwa_drives and (rec.takeovers, rec.escapes) == (1, 0)
+    assert "with the way to the goal clear: DWA drives" in caplog.text
+    rec.planning_goal(2.1, Odometry(distance=0.39), far_box, goal)
+    assert rec.dwa_drives
+    rec.planning_goal(2.2, Odometry(distance=0.40), far_box, goal)  # travelled
+    assert not rec.dwa_drives
+    rec.planning_goal(4.2, Odometry(distance=0.40), far_box, goal)
+    assert rec.dwa_drives and rec.takeovers == 2
+    rec.planning_goal(9.25, Odometry(distance=0.40), far_box, goal)  # timed out
+    assert not rec.dwa_drives
+
+
+def test_something_in_the_way_is_an_escape_and_dwa_itself_is_never_taken_over():
+    """A box between the robot and its goal: the policy is not the problem, step away. DWA's
+    own job (no takeover radius) and a config without takeovers never hand over."""
+    box = world(points_base=[(0.5, y) for y in np.linspace(-0.5, 0.5, 11)])
+    for rec in (StallRecovery(RecoveryConfig(stall_s=1.0), takeover_radius_m=0.17),
+                StallRecovery(RecoveryConfig(stall_s=1.0)),
+                StallRecovery(RecoveryConfig(stall_s=1.0, dwa_takeover=False), 0.17)):
+        rec.planning_goal(0.0, Odometry(), box, GOAL)
+        assert rec.planning_goal(1.0, Odometry(), box, GOAL) is not GOAL
+        assert not rec.dwa_drives and (rec.takeovers, rec.escapes) == (0, 1)
+    clear = world(points_base=[(2.0, 1.0)])
+    off = StallRecovery(RecoveryConfig(stall_s=1.0, dwa_takeover=False), 0.17)
+    for t in np.arange(0.0, 5.0, 0.05):
+        assert off.planning_goal(float(t), Odometry(), clear, GOAL) is GOAL  # waits, as before
+    assert not off.dwa_drives and off.takeovers == 0
+
+
+def test_the_way_gap_measures_the_first_stretch_toward_the_goal_only():
+    here, goal = np.zeros(2), np.array([5.0, 0.0])
+    centres, radii = np.array([[0.5, 0.3], [3.0, 0.0]]), np.array([0.1, 0.3])
+    assert way_gap(here, goal, centres, radii, 1.0) == pytest.approx(0.2)  # the far one: beyond
+    assert way_gap(here, goal, centres[1:], radii[1:], 1.0) == pytest.approx(1.7)
+    assert way_gap(here, goal, centres[1:], radii[1:], 10.0) == pytest.approx(-0.3)  # on the way
+    assert way_gap(here, np.array([0.2, 0.0]), centres, radii, 1.0) == pytest.approx(
+        math.hypot(0.3, 0.3) - 0.1)  # up to the goal, not past it
+    assert way_gap(here, goal, np.zeros((0, 2)), np.zeros(0), 1.0) == math.inf
 
 
 def test_the_escape_heads_the_most_open_way_not_just_away_from_the_nearest():

@@ -133,7 +133,8 @@ class Config:
     dwa: DWAConfig = section(DWAConfig, "the fixed-budget Dynamic Window Approach")
     shield: ShieldConfig = section(ShieldConfig, "the safety shield that certifies every command")
     recovery: RecoveryConfig = section(
-        RecoveryConfig, "the DWA job's stall recovery: step away from what blocks it, then go on")
+        RecoveryConfig, "stall recovery of the goal-driven jobs: step away from what blocks it, then go"
+        " on; a frozen policy hands the drive to DWA")
     policy: PolicyConfig = section(PolicyConfig, "the TD3 actor (onnxruntime) of the safemove planner")
     limits: LimitsConfig = section(LimitsConfig, "velocity and acceleration limits, applied last")
     control: ControlConfig = section(

@@ -6,10 +6,12 @@ the safe corridor along DWA's best path when the model's spec has a corridor blo
 observation by the model's own spec, one actor inference, the action mapped to a twist, and the
 shield on that twist. When the robot has stood too long short of the goal, the stall recovery
 (runtime.planning.stall_recovery) gives the observation an escape goal for a while, as it gives
-DWA in the DWA mode: the policy drives to goals, so it steps away. Non-finite odometry,
-observation or action makes the cycle a safe stop (brake at the limits' deceleration), counted
-and logged with the reason: the actor never sees a non-finite observation and its command
-never reaches the shield unless it is finite.
+DWA in the DWA mode: the policy drives to goals, so it steps away. With the way to the goal
+clear, the policy froze, not the world: DWA's own command drives toward the goal for a while (a
+takeover; only for the job's own policy: a training agent's actions are its own). Non-finite
+odometry, observation or action makes the cycle a safe stop (brake at the limits'
+deceleration), counted and logged with the reason: the actor never sees a non-finite
+observation and its command never reaches the shield unless it is finite.
 """
 
 from __future__ import annotations
@@ -72,7 +74,8 @@ class SafeMoveJob:
                  **goal: Any) -> None:
         """`goal`: PlanningStep's arrival_radius_m and speed_limit."""
         self._planning = PlanningStep(goal_odom, config, clock, "policy", **goal)
-        self._recovery = StallRecovery(config.recovery)
+        self._recovery = StallRecovery(
+            config.recovery, None if policy is None else config.robot.radius_m)
         self._policy = policy
         if spec is None:
             if policy is None:
@@ -131,9 +134,13 @@ class SafeMoveJob:
 
     def decide(self, prepared: Prepared, action: np.ndarray | None = None) -> Twist:
         """The actor's action (this job's policy, or `action` from outside) mapped to a twist,
-        through the shield."""
+        through the shield; DWA's best sample instead during a stall recovery's takeover."""
         if prepared.context is None or prepared.observation is None:
             return STOP
+        if self._recovery.dwa_drives:
+            self._last_obs = prepared.observation.copy()
+            return self._planning.certify(Twist(*map(float, prepared.context.dwa.best)),
+                                          prepared.context)
         if action is None:
             if self._policy is None:
                 raise ValueError("SafeMoveJob without a policy: decide() needs the action")
@@ -169,6 +176,7 @@ class SafeMoveJob:
         return {
             **self._planning.summary(),
             "stall_escapes": self._recovery.escapes,
+            "dwa_takeovers": self._recovery.takeovers,
             "policy": None if policy is None else {
                 "model": str(policy.path),
                 "variant": variant_of(policy.path),

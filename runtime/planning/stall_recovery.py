@@ -15,15 +15,22 @@ one of them, the same for every planner decision downstream:
            points and tracks) instead of the real goal, until the robot has travelled
            `escape_distance_m` or `escape_timeout_s` has passed; then the real goal again, and a
            fresh stall timer.
-
+  takeover a learned policy can freeze where its training never took it (a goal close beside
+           the robot, at a large bearing: it stands, the goal unreached) while nothing is in
+           its way. When a policy drives and the straight way toward the real goal (its first
+           `escape_goal_m`) leaves room for the robot's disc, DWA's command drives instead of
+           the policy's, toward the real goal, until the robot has travelled
+           `escape_distance_m` or `escape_timeout_s` has passed; then the policy again. Where
+           something is in the way: an escape, as above.
 Every command still goes through the shield; the escape only moves the goal DWA plans for and,
-in the SafeMove job, the goal in the policy's observation. The goal-reached check always uses
-the real goal.
+in the SafeMove job, the goal in the policy's observation, and a takeover only chooses DWA's
+command over the policy's. The goal-reached check always uses the real goal.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -49,23 +56,37 @@ class RecoveryConfig:
                                        min=0.01, max=5.0)
     escape_timeout_s: float = setting(8.0, "the escape ends after this long", "s", min=0.1,
                                       max=60.0)
+    dwa_takeover: bool = setting(
+        True, "the SafeMove job: a stall with a clear way toward the goal hands the drive to DWA,"
+        " toward the real goal, for the escape's distance or time, instead of an escape (a"
+        " policy can freeze beside a goal it never met in training)")
 
 
 @dataclass(frozen=True)
 class _Escape:
     start_t: float
     start_distance: float
-    goal: np.ndarray  # (2,) odom
+    goal: np.ndarray | None  # (2,) odom; None: a takeover, DWA drives to the real goal
 
 
 class StallRecovery:
-    """Tracks travel over time; `planning_goal` gives the goal DWA should plan for now."""
+    """Tracks travel over time; `planning_goal` gives the goal DWA should plan for now, and
+    `dwa_drives` whether DWA's command should drive instead of a policy's."""
 
-    def __init__(self, cfg: RecoveryConfig) -> None:
+    def __init__(self, cfg: RecoveryConfig, takeover_radius_m: float | None = None) -> None:
+        """`takeover_radius_m`: when a policy drives, the robot's footprint radius (the room a
+        clear way must leave); None: DWA drives itself, no takeovers."""
         self._cfg = cfg
+        self._takeover_radius = takeover_radius_m if cfg.dwa_takeover else None
         self._anchor: tuple[float, float] | None = None  # (time, odometry distance)
         self._escape: _Escape | None = None
         self.escapes = 0
+        self.takeovers = 0
+
+    @property
+    def dwa_drives(self) -> bool:
+        """A takeover is on (as of the last `planning_goal`)."""
+        return self._escape is not None and self._escape.goal is None
 
     def planning_goal(self, now: float, odom: Odometry, world: WorldState,
                       goal: np.ndarray) -> np.ndarray:
@@ -77,7 +98,7 @@ class StallRecovery:
             e = self._escape
             if (odom.distance - e.start_distance < cfg.escape_distance_m
                     and now - e.start_t < cfg.escape_timeout_s):
-                return e.goal
+                return goal if e.goal is None else e.goal
             self._escape = None
             self._anchor = (now, odom.distance)
             return goal
@@ -88,17 +109,26 @@ class StallRecovery:
             return goal
         here = np.array([odom.x, odom.y])
         centres, radii = obstacles_odom(odom, world)
+        if (self._takeover_radius is not None
+                and way_gap(here, goal, centres, radii, cfg.escape_goal_m) > self._takeover_radius):
+            self._escape = _Escape(now, odom.distance, None)
+            self.takeovers += 1
+            log.info("stalled %.1f s (%.3f m travelled) with the way to the goal clear: DWA drives"
+                     " toward it for up to %.2f m or %.0f s", now - self._anchor[0],
+                     odom.distance - self._anchor[1], cfg.escape_distance_m, cfg.escape_timeout_s)
+            return goal
         heading = open_heading(here, centres, radii, cfg.escape_goal_m)
         if heading is None:  # nothing near to step away from: keep waiting for the goal's way
             self._anchor = (now, odom.distance)
             return goal
         away = np.array([np.cos(heading), np.sin(heading)])
-        self._escape = _Escape(now, odom.distance, here + cfg.escape_goal_m * away)
+        escape_goal = here + cfg.escape_goal_m * away
+        self._escape = _Escape(now, odom.distance, escape_goal)
         self.escapes += 1
         log.info("stalled %.1f s (%.3f m travelled): escaping toward (%.2f, %.2f) (odom), the"
                  " most open way", now - self._anchor[0], odom.distance - self._anchor[1],
-                 *self._escape.goal)
-        return self._escape.goal
+                 *escape_goal)
+        return escape_goal
 
 
 def obstacles_odom(odom: Odometry, world: WorldState) -> tuple[np.ndarray, np.ndarray]:
@@ -114,6 +144,20 @@ def obstacles_odom(odom: Odometry, world: WorldState) -> tuple[np.ndarray, np.nd
         centres.append(np.array([t.position for t in confirmed], dtype=float))
         radii.append(np.array([t.radius for t in confirmed], dtype=float))
     return np.concatenate(centres), np.concatenate(radii)
+
+
+def way_gap(here: np.ndarray, goal: np.ndarray, centres: np.ndarray, radii: np.ndarray,
+            length: float, step_m: float = 0.05) -> float:
+    """The smallest gap (m) between the obstacles and the straight segment from `here` toward
+    `goal`, up to `length` or the goal (inf with no obstacles)."""
+    span = min(length, float(np.hypot(*(goal - here))))
+    if not len(radii):
+        return math.inf
+    direction = (goal - here) / max(float(np.hypot(*(goal - here))), 1e-9)
+    samples = here + np.linspace(0.0, span, max(2, round(span / step_m) + 1))[:, None] * direction
+    gaps = np.hypot(samples[:, None, 0] - centres[None, :, 0],
+                    samples[:, None, 1] - centres[None, :, 1]) - radii
+    return float(gaps.min())
 
 
 def open_heading(here: np.ndarray, centres: np.ndarray, radii: np.ndarray, length: float,
