@@ -92,7 +92,8 @@ def test_a_policy_stalled_with_the_way_to_the_goal_clear_is_taken_over_by_dwa(ca
         assert not rec.dwa_drives
     assert rec.planning_goal(2.0, Odometry(), far_box, goal) is goal
     assert rec.dwa_drives and (rec.takeovers, rec.escapes) == (1, 0)
-    assert "with the way to the goal clear: DWA drives" in caplog.text
+    assert "no progress toward the goal for 2.0 s" in caplog.text
+    assert "the way to it clear: DWA drives" in caplog.text
     rec.planning_goal(2.1, Odometry(distance=0.39), far_box, goal)
     assert rec.dwa_drives
     rec.planning_goal(2.2, Odometry(distance=0.40), far_box, goal)  # travelled
@@ -101,6 +102,24 @@ def test_a_policy_stalled_with_the_way_to_the_goal_clear_is_taken_over_by_dwa(ca
     assert rec.dwa_drives and rec.takeovers == 2
     rec.planning_goal(9.25, Odometry(distance=0.40), far_box, goal)  # timed out
     assert not rec.dwa_drives
+
+
+def test_a_policy_creeping_without_coming_closer_is_taken_over_too():
+    """Creeping sideways at 2 cm/s travels more than stall_distance_m per stall_s, so it is
+    never a stall, but it brings the goal no closer: after stall_s of that, DWA drives."""
+    cfg = RecoveryConfig(stall_s=4.0, stall_distance_m=0.05)
+    rec = StallRecovery(cfg, takeover_radius_m=0.17)
+    goal = np.array([3.0, 0.0])
+    for t in np.arange(0.0, 4.0, 0.05):
+        y = 0.02 * t  # across the goal's bearing
+        rec.planning_goal(float(t), Odometry(y=y, distance=y), world(), goal)
+        assert not rec.dwa_drives
+    rec.planning_goal(4.0, Odometry(y=0.08, distance=0.08), world(), goal)
+    assert rec.dwa_drives and (rec.takeovers, rec.escapes) == (1, 0)
+    closing = StallRecovery(cfg, takeover_radius_m=0.17)
+    for t in np.arange(0.0, 20.0, 0.05):  # toward the goal at 2 cm/s: progress, not a stall
+        closing.planning_goal(float(t), Odometry(x=0.02 * t, distance=0.02 * t), world(), goal)
+    assert closing.takeovers == 0
 
 
 def test_something_in_the_way_is_an_escape_and_dwa_itself_is_never_taken_over():

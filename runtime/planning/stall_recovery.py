@@ -16,12 +16,14 @@ one of them, the same for every planner decision downstream:
            `escape_distance_m` or `escape_timeout_s` has passed; then the real goal again, and a
            fresh stall timer.
   takeover a learned policy can freeze where its training never took it (a goal close beside
-           the robot, at a large bearing: it stands, the goal unreached) while nothing is in
-           its way. When a policy drives and the straight way toward the real goal (its first
+           the robot, at a large bearing: it stands or creeps, the goal unreached) while
+           nothing is in its way. When a policy drives, has come no closer to the real goal
+           by `stall_distance_m` in `stall_s`, and the straight way toward the goal (its first
            `escape_goal_m`) leaves room for the robot's disc, DWA's command drives instead of
            the policy's, toward the real goal, until the robot has travelled
            `escape_distance_m` or `escape_timeout_s` has passed; then the policy again. Where
-           something is in the way: an escape, as above.
+           something is in the way, the policy keeps the wheel (and a stall, an escape).
+
 Every command still goes through the shield; the escape only moves the goal DWA plans for and,
 in the SafeMove job, the goal in the policy's observation, and a takeover only chooses DWA's
 command over the policy's. The goal-reached check always uses the real goal.
@@ -57,9 +59,9 @@ class RecoveryConfig:
     escape_timeout_s: float = setting(8.0, "the escape ends after this long", "s", min=0.1,
                                       max=60.0)
     dwa_takeover: bool = setting(
-        True, "the SafeMove job: a stall with a clear way toward the goal hands the drive to DWA,"
-        " toward the real goal, for the escape's distance or time, instead of an escape (a"
-        " policy can freeze beside a goal it never met in training)")
+        True, "the SafeMove job: no progress toward the goal for stall_s with the way to it"
+        " clear hands the drive to DWA, toward the real goal, for the escape's distance or"
+        " time (a policy can freeze beside a goal it never met in training)")
 
 
 @dataclass(frozen=True)
@@ -70,7 +72,7 @@ class _Escape:
 
 
 class StallRecovery:
-    """Tracks travel over time; `planning_goal` gives the goal DWA should plan for now, and
+    """Tracks travel and progress over time; `planning_goal` gives the goal DWA should plan for now, and
     `dwa_drives` whether DWA's command should drive instead of a policy's."""
 
     def __init__(self, cfg: RecoveryConfig, takeover_radius_m: float | None = None) -> None:
@@ -79,6 +81,7 @@ class StallRecovery:
         self._cfg = cfg
         self._takeover_radius = takeover_radius_m if cfg.dwa_takeover else None
         self._anchor: tuple[float, float] | None = None  # (time, odometry distance)
+        self._closest: tuple[float, float] | None = None  # (time, distance to the goal)
         self._escape: _Escape | None = None
         self.escapes = 0
         self.takeovers = 0
@@ -94,29 +97,34 @@ class StallRecovery:
         cfg = self._cfg
         if cfg.stall_s <= 0.0:
             return goal
+        here = np.array([odom.x, odom.y])
+        to_goal = float(np.hypot(*(goal - here)))
         if self._escape is not None:
             e = self._escape
             if (odom.distance - e.start_distance < cfg.escape_distance_m
                     and now - e.start_t < cfg.escape_timeout_s):
                 return goal if e.goal is None else e.goal
             self._escape = None
-            self._anchor = (now, odom.distance)
+            self._anchor, self._closest = (now, odom.distance), (now, to_goal)
             return goal
+        if self._closest is None or to_goal <= self._closest[1] - cfg.stall_distance_m:
+            self._closest = (now, to_goal)
         if self._anchor is None or odom.distance - self._anchor[1] >= cfg.stall_distance_m:
             self._anchor = (now, odom.distance)
-            return goal
+        if self._takeover_radius is not None and now - self._closest[0] >= cfg.stall_s:
+            centres, radii = obstacles_odom(odom, world)
+            if way_gap(here, goal, centres, radii, cfg.escape_goal_m) > self._takeover_radius:
+                self._escape = _Escape(now, odom.distance, None)
+                self.takeovers += 1
+                log.info("no progress toward the goal for %.1f s (%.3f m travelled), the way to"
+                         " it clear: DWA drives toward it for up to %.2f m or %.0f s",
+                         now - self._closest[0], odom.distance - self._anchor[1],
+                         cfg.escape_distance_m, cfg.escape_timeout_s)
+                return goal
+            self._closest = (now, to_goal)  # something is in the way: look again in stall_s
         if now - self._anchor[0] < cfg.stall_s:
             return goal
-        here = np.array([odom.x, odom.y])
         centres, radii = obstacles_odom(odom, world)
-        if (self._takeover_radius is not None
-                and way_gap(here, goal, centres, radii, cfg.escape_goal_m) > self._takeover_radius):
-            self._escape = _Escape(now, odom.distance, None)
-            self.takeovers += 1
-            log.info("stalled %.1f s (%.3f m travelled) with the way to the goal clear: DWA drives"
-                     " toward it for up to %.2f m or %.0f s", now - self._anchor[0],
-                     odom.distance - self._anchor[1], cfg.escape_distance_m, cfg.escape_timeout_s)
-            return goal
         heading = open_heading(here, centres, radii, cfg.escape_goal_m)
         if heading is None:  # nothing near to step away from: keep waiting for the goal's way
             self._anchor = (now, odom.distance)
