@@ -36,6 +36,7 @@ from runtime.pipeline import Pipeline
 from runtime.policy.shipped import variant_of
 from runtime.process.cycle_record import CycleRecord
 from runtime.process.recorder import Recorder, recording_metadata
+from sim_stub.binomial import wilson_interval
 from sim_stub.lockstep import LockstepEpisode
 from sim_stub.provenance import source_commit
 from sim_stub.scenario import load_scenario
@@ -210,6 +211,7 @@ def summarise(results: list[EpisodeResult]) -> dict[str, Any]:
     return {
         "episodes": n,
         "success_rate": len(ok) / n,
+        "success_ci95": list(wilson_interval(len(ok), n)),
         "collision_rate": len(coll) / n,
         "timeout_rate": sum(r.status == "timeout" for r in results) / n,
         "at_fault_collisions": sum(r.at_fault for r in coll),
@@ -277,10 +279,12 @@ def table(result: dict[str, Any]) -> str:
     def cell(x: float | None, fmt: str) -> str:
         return "-" if x is None else format(x, fmt)
 
-    rows = [(f"{'scenario':<16}{'success':>9}{'collision':>10}{'timeout':>9}{'at fault':>9}"
+    rows = [(f"{'scenario':<16}{'success':>9}{'95 % CI':>10}{'collision':>10}{'timeout':>9}{'at fault':>9}"
              f"{'moving':>7}{'path m':>8}{'speed m/s':>10}{'shield':>8}")]
     for name, s in result["scenarios"].items():
-        rows.append(f"{name:<16}{100 * s['success_rate']:>8.0f}%{100 * s['collision_rate']:>9.0f}%"
+        ci = f"{100 * s['success_ci95'][0]:.0f}-{100 * s['success_ci95'][1]:.0f}%"
+        rows.append(f"{name:<16}{100 * s['success_rate']:>8.0f}%{ci:>10}"
+                    f"{100 * s['collision_rate']:>9.0f}%"
                     f"{100 * s['timeout_rate']:>8.0f}%{s['at_fault_collisions']:>9d}"
                     f"{s['moving_collisions']:>7d}"
                     f"{cell(s['avg_path_length_m'], '.2f'):>8}{cell(s['avg_speed_m_s'], '.3f'):>10}"

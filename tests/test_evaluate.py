@@ -91,6 +91,8 @@ def test_summary_columns():
                    ep("collision"), ep("timeout")])
     assert s["collision_rate"] == pytest.approx(0.5)
     assert (s["success_rate"], s["timeout_rate"]) == pytest.approx((1 / 3, 1 / 6))
+    lo, hi = s["success_ci95"]  # two of six: the Wilson interval, 9.7-70 %
+    assert (lo, hi) == pytest.approx((0.0968, 0.7000), abs=1e-4)
     assert (s["at_fault_collisions"], s["moving_collisions"]) == (1, 2)
     assert s["avg_path_length_m"] == pytest.approx(3.5)  # over successes
     assert s["avg_speed_m_s"] == pytest.approx((0.3 + 0.2) / 2)

@@ -1,0 +1,114 @@
+"""safemove compare: Wilson intervals, McNemar's exact test on seed-paired episodes, and the
+refusals of results that are not the same episodes."""
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from runtime.errors import UserError
+from sim_stub.binomial import mcnemar_exact_p, wilson_interval
+from sim_stub.compare import compare, load_evaluation
+
+
+def _wilson(k: int, n: int, z: float = 1.959963984540054) -> tuple[float, float]:
+    """The Wilson score interval from its formula, the oracle for scipy's."""
+    p = k / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z / (1 + z * z / n) * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
+    return centre - half, centre + half
+
+
+def _result(path, outcomes: dict[str, list[str]], first_seed: int = 0, **conditions) -> Path:
+    """A `safemove eval --json`-shaped result: per scenario, statuses for consecutive seeds."""
+    episodes = [{"scenario": name, "seed": first_seed + i, "status": status}
+                for name, statuses in outcomes.items() for i, status in enumerate(statuses)]
+    result = {"fps": 15.0, "noise": True, "crowd": "scenario", "camera_hfov_deg": 87.0,
+              **conditions, "episodes": episodes}
+    path.write_text(json.dumps(result))
+    return path
+
+
+@pytest.mark.parametrize("k, n", [(0, 10), (10, 10), (73, 100), (135, 200), (1, 3)])
+def test_wilson_interval_matches_its_formula_and_stays_in_the_unit_interval(k, n):
+    lo, hi = wilson_interval(k, n)
+    assert (lo, hi) == pytest.approx(_wilson(k, n), abs=1e-9)
+    assert 0.0 <= lo <= k / n <= hi <= 1.0
+
+
+def test_mcnemar_exact_counts_only_the_discordant_pairs():
+    assert mcnemar_exact_p(0, 6) == pytest.approx(2 * 0.5 ** 6)  # all six one way
+    assert mcnemar_exact_p(6, 0) == mcnemar_exact_p(0, 6)  # two-sided
+    assert mcnemar_exact_p(3, 3) == pytest.approx(1.0)
+    assert mcnemar_exact_p(0, 0) == 1.0  # no discordant episode: no evidence either way
+    # P(X <= 2) for X ~ Bin(10, 1/2), doubled
+    assert mcnemar_exact_p(2, 8) == pytest.approx(2 * (1 + 10 + 45) / 1024)
+
+
+def test_compare_pairs_episodes_by_seed_and_pools_files_under_one_label(tmp_path):
+    dwa = [_result(tmp_path / "dwa.json", {"a": ["success", "collision", "success", "timeout"]}),
+           _result(tmp_path / "d1.json", {"a": ["success", "collision"]}, first_seed=1000)]
+    policy = [_result(tmp_path / "p0.json", {"a": ["collision", "success", "success", "success"]}),
+              _result(tmp_path / "p1.json", {"a": ["success", "success"]}, first_seed=1000)]
+    out = compare([load_evaluation("dwa", dwa), load_evaluation("policy", policy)])
+    a = out["scenarios"]["a"]
+    assert a["rates"]["dwa"]["successes"] == 3 and a["rates"]["dwa"]["episodes"] == 6
+    assert a["rates"]["policy"]["successes"] == 5
+    assert a["rates"]["policy"]["ci95"] == pytest.approx(list(_wilson(5, 6)))
+    # seed 0 only the reference; seeds 1, 3 and 1001 only the policy
+    paired = a["against_reference"]["policy"]
+    assert (paired["only_reference"], paired["only_this"]) == (1, 3)
+    assert paired["difference"] == pytest.approx(2 / 6)
+    assert paired["p_value"] == pytest.approx(mcnemar_exact_p(1, 3))
+    assert out["reference"] == "dwa" and out["sources"]["policy"][1].endswith("p1.json")
+
+
+def test_compare_refuses_results_that_are_not_the_same_episodes(tmp_path):
+    ref = load_evaluation("dwa", [_result(tmp_path / "r.json", {"a": ["success"] * 4})])
+    short = load_evaluation("p", [_result(tmp_path / "s.json", {"a": ["success"] * 3})])
+    with pytest.raises(UserError, match=r"p has 3 seeds \(0-2\) of a, dwa 4 seeds \(0-3\)"):
+        compare([ref, short])
+    reactive = load_evaluation("q", [_result(tmp_path / "c.json", {"a": ["success"] * 4},
+                                             crowd="reactive")])
+    with pytest.raises(UserError, match="crowd=reactive"):
+        compare([ref, reactive])
+    # results from before --camera-hfov existed ran at the D435's 87 deg
+    old = load_evaluation("old", [_result(tmp_path / "o.json", {"a": ["success"] * 4},
+                                          camera_hfov_deg=None)])
+    assert compare([ref, old])["scenarios"]["a"]["against_reference"]["old"]["p_value"] == 1.0
+    with pytest.raises(UserError, match="seed 0 appears twice"):
+        load_evaluation("twice", [tmp_path / "r.json", tmp_path / "r.json"])
+
+
+@pytest.mark.parametrize("content, message", [
+    (None, "No such file"),
+    ("{not json", "not a `safemove eval --json` result"),
+    ('{"scenarios": {}}', "no 'episodes' list"),
+    ('{"episodes": [{"scenario": "a", "seed": 0}]}', r"episodes\[0\] lacks"),
+    ('{"episodes": [{"scenario": "a", "seed": "0", "status": "success"}]}', "bad scenario or seed"),
+])
+def test_a_bad_result_file_is_one_line_naming_it(tmp_path, content, message):
+    path = tmp_path / "bad.json"
+    if content is not None:
+        path.write_text(content)
+    with pytest.raises(UserError, match=message) as err:
+        load_evaluation("bad", [path])
+    assert str(path) in str(err.value)
+
+
+def test_compare_cli_prints_the_table_and_json_and_refuses_with_exit_2(tmp_path, safemove):
+    ref = _result(tmp_path / "dwa.json", {"a": ["success", "collision"] * 5})
+    new = _result(tmp_path / "new.json", {"a": ["success"] * 10})
+    run = safemove(["compare", f"dwa={ref}", f"new={new}"])
+    assert run.wait(timeout=60) == 0, run.stderr[-2000:]
+    result = json.loads(run.stdout)
+    assert result["scenarios"]["a"]["against_reference"]["new"]["only_this"] == 5
+    assert "95 % CI" in run.stderr and "+50.0 pts" in run.stderr
+    same = safemove(["compare", ref, ref])
+    assert same.wait(timeout=60) == 2
+    assert "a label appears twice" in same.stderr and "Traceback" not in same.stderr
+    missing = safemove(["compare", f"dwa={ref}", f"new={tmp_path / 'none.json'}"])
+    assert missing.wait(timeout=60) == 2
+    (line,) = missing.stderr.strip().splitlines()
+    assert "none.json" in line and "Traceback" not in line
