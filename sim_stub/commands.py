@@ -472,33 +472,36 @@ def eval_run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _labelled_files(text: str) -> tuple[str, list[Path]]:
-    """compare's `[LABEL=]FILE[,FILE...]`: the label defaults to the first file's path."""
-    label, sep, files = text.rpartition("=")
-    paths = [Path(f) for f in (files if sep else text).split(",") if f]
-    if not paths or (sep and not label):
-        raise argparse.ArgumentTypeError(f"expected [LABEL=]FILE[,FILE...], got {text!r}")
-    return (label if sep else str(paths[0])), paths
+def _labelled_runs(text: str) -> tuple[str, list[list[Path]]]:
+    """compare's `[LABEL=]RUN[,RUN...]`, a RUN being `FILE[+FILE...]`; the label defaults to
+    the first file's path."""
+    label, sep, spec = text.rpartition("=")
+    runs = [[Path(f) for f in run.split("+") if f] for run in (spec if sep else text).split(",")]
+    if not runs or not all(runs) or (sep and not label):
+        raise argparse.ArgumentTypeError(f"expected [LABEL=]FILE[+FILE...][,FILE...], got {text!r}")
+    return (label if sep else str(runs[0][0])), runs
 
 
 def add_compare(p: argparse.ArgumentParser) -> None:
-    p.add_argument("results", type=_labelled_files, nargs="+", metavar="[LABEL=]FILE[,FILE...]",
-                   help="`safemove eval --json` results on the same scenarios and seeds; the"
-                        " first is the reference; several files under one label pool their"
-                        " episodes (e.g. the test and the validation seeds)")
+    p.add_argument("results", type=_labelled_runs, nargs="+",
+                   metavar="[LABEL=]FILE[+FILE...][,FILE...]",
+                   help="`safemove eval --json` results on the same scenarios and seeds, the"
+                        " first the reference; FILE+FILE pools one policy's episodes (the test"
+                        " and the validation seeds), commas separate training runs (seeds) of"
+                        " one planner")
     p.add_argument("--json", action="store_true", help="print only the JSON result")
     p.set_defaults(func=compare_run)
 
 
 def compare_run(args: argparse.Namespace) -> int:
-    """Success rates with their 95 % intervals; each result against the first, paired by seed
-    (McNemar's exact test)."""
+    """Success rates with their 95 % intervals; each planner against the first: one run each
+    paired by episode (McNemar's exact test), several each between runs (Welch's t-test)."""
     from sim_stub.compare import compare, load_evaluation, table
 
     labels = [label for label, _ in args.results]
     if len(set(labels)) < len(labels):
         raise UserError(f"compare: a label appears twice in {labels}: name them LABEL=FILE")
-    result = compare([load_evaluation(label, paths) for label, paths in args.results])
+    result = compare([load_evaluation(label, runs) for label, runs in args.results])
     if not args.json:
         print(table(result), file=sys.stderr)
     print_json(result)

@@ -1,21 +1,30 @@
-"""Whether one planner beats another on the same episodes, or only drew luckier seeds.
+"""Whether one planner beats another, or only drew luckier episodes or a luckier training seed.
 
-`safemove eval` runs every planner on the same seeded episodes, so two results pair episode for
-episode: only the episodes that one planner succeeded and the other did not say anything about
-which is better. McNemar's exact test asks how likely a split of those discordant episodes at
-least that uneven would be if neither planner were better; each success rate also gets its
-95 % Wilson interval (sim_stub.binomial).
+`safemove eval` runs every planner on the same seeded episodes, so two results of one run each
+pair episode for episode: only the episodes that one planner succeeded in and the other did not
+say which is better. McNemar's exact test asks how likely a split of those discordant episodes
+at least that uneven would be if neither were better; each rate gets its 95 % Wilson interval
+(sim_stub.binomial).
 
-A result may be several files for one label (a policy scored on the test seeds and on the
-validation seeds): their episodes are pooled, and no (scenario, seed) may appear twice.
+A trained policy is also one draw of its training seed, which moves the rates as much as the
+episodes do. Given several training runs of each (every run scored on the same episodes), the
+comparison is between runs: each run's success rate is one sample, the rate's interval is
+Student's t over the runs, and two planners differ by Welch's t-test. Episodes of one run may
+come from several files (the test and the validation seeds), pooled; no (scenario, seed) may
+appear twice in one run.
 """
 
 from __future__ import annotations
 
 import json
+import math
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+import numpy as np
+from scipy.stats import ttest_1samp, ttest_ind
 
 from drivers.depth_source import D435_HFOV_DEG
 from runtime.errors import UserError
@@ -26,13 +35,24 @@ _CONDITIONS = ("fps", "noise", "crowd", "camera_hfov_deg")
 
 
 @dataclass(frozen=True)
+class Run:
+    """One policy's (one training run's) outcomes: success or not per (scenario, seed)."""
+
+    sources: tuple[Path, ...]
+    success: dict[str, dict[int, bool]]
+
+    def rate(self, scenario: str) -> float:
+        outcomes = self.success[scenario]
+        return sum(outcomes.values()) / len(outcomes)
+
+
+@dataclass(frozen=True)
 class Evaluation:
-    """One planner's outcomes: success or not per (scenario, seed)."""
+    """One planner: its training runs (one for DWA or a single policy)."""
 
     label: str
-    sources: tuple[Path, ...]
     conditions: dict[str, Any]
-    success: dict[str, dict[int, bool]]
+    runs: tuple[Run, ...]
 
 
 def _read(path: Path) -> tuple[dict[str, Any], list[tuple[str, int, bool]]]:
@@ -63,87 +83,151 @@ def _read(path: Path) -> tuple[dict[str, Any], list[tuple[str, int, bool]]]:
 
 
 def _differ(a: dict[str, Any], b: dict[str, Any]) -> str:
-    """The settings in which two results' conditions differ, as `key=a (b)`."""
+    """The settings in which two results' conditions differ, as `key=a (against b)`."""
     return ", ".join(f"{k}={a[k]} (against {b[k]})" for k in _CONDITIONS if a[k] != b[k])
 
 
-def load_evaluation(label: str, paths: list[Path]) -> Evaluation:
-    """The pooled episodes of `paths`, which must share their conditions and no episode."""
-    conditions: dict[str, Any] | None = None
-    success: dict[str, dict[int, bool]] = {}
-    for path in paths:
-        found, rows = _read(path)
-        if conditions is not None and found != conditions:
-            raise UserError(f"compare: {path}: ran with {_differ(found, conditions)} in"
-                            f" {paths[0]}")
-        conditions = found
-        for scenario, seed, ok in rows:
-            seeds = success.setdefault(scenario, {})
-            if seed in seeds:
-                raise UserError(f"compare: {path}: {scenario} seed {seed} appears twice in"
-                                f" {label}")
-            seeds[seed] = ok
-    assert conditions is not None  # paths is never empty (the parser wants one)
-    return Evaluation(label, tuple(paths), conditions, success)
+def load_evaluation(label: str, runs: list[list[Path]]) -> Evaluation:
+    """`runs`: each run's files, whose episodes pool; every file under one label must have run
+    under the same conditions."""
+    first: tuple[Path, dict[str, Any]] | None = None
+    loaded = []
+    for paths in runs:
+        success: dict[str, dict[int, bool]] = {}
+        for path in paths:
+            found, rows = _read(path)
+            if first is None:
+                first = (path, found)
+            elif found != first[1]:
+                raise UserError(f"compare: {path}: ran with {_differ(found, first[1])} in"
+                                f" {first[0]}")
+            for scenario, seed, ok in rows:
+                seeds = success.setdefault(scenario, {})
+                if seed in seeds:
+                    raise UserError(f"compare: {path}: {scenario} seed {seed} appears twice in"
+                                    f" one run of {label}")
+                seeds[seed] = ok
+        loaded.append(Run(tuple(paths), success))
+    assert first is not None  # the parser wants at least one file
+    return Evaluation(label, first[1], tuple(loaded))
 
 
 def _seed_span(seeds: set[int]) -> str:
     return f"{len(seeds)} seeds ({min(seeds)}-{max(seeds)})" if seeds else "no seeds"
 
 
-def compare(evaluations: list[Evaluation]) -> dict[str, Any]:
-    """Per scenario of the first (the reference): every evaluation's success rate with its
-    interval, and each other one against the reference, paired by seed."""
-    reference, others = evaluations[0], evaluations[1:]
+def _check_same_episodes(reference: Evaluation, others: list[Evaluation]) -> None:
     for other in others:
         if other.conditions != reference.conditions:
             raise UserError(f"compare: {other.label} ran with"
                             f" {_differ(other.conditions, reference.conditions)} in"
                             f" {reference.label}: not the same episodes")
-        for scenario, seeds in reference.success.items():
-            theirs = set(other.success.get(scenario, {}))
-            if theirs != set(seeds):
-                raise UserError(f"compare: {other.label} has {_seed_span(theirs)} of"
-                                f" {scenario}, {reference.label} {_seed_span(set(seeds))}:"
-                                " compare results on the same episodes")
+    for scenario, seeds in reference.runs[0].success.items():
+        for ev in [reference, *others]:
+            for i, run in enumerate(ev.runs):
+                theirs = set(run.success.get(scenario, {}))
+                if theirs != set(seeds):
+                    name = ev.label if len(ev.runs) == 1 else f"{ev.label} run {i + 1}"
+                    raise UserError(f"compare: {name} has {_seed_span(theirs)} of {scenario},"
+                                    f" {reference.label} {_seed_span(set(seeds))}: compare"
+                                    " results on the same episodes")
+
+
+def _finite(x: float) -> float | None:
+    return float(x) if math.isfinite(x) else None
+
+
+def _rates(ev: Evaluation, scenario: str) -> dict[str, Any]:
+    """Success over one run (Wilson interval) or the mean over runs (Student's t interval)."""
+    rates = [run.rate(scenario) for run in ev.runs]
+    if len(ev.runs) == 1:
+        outcomes = ev.runs[0].success[scenario]
+        lo, hi = wilson_interval(sum(outcomes.values()), len(outcomes))
+        return {"runs": 1, "episodes": len(outcomes), "success_rate": rates[0],
+                "ci95": [lo, hi], "interval": "wilson"}
+    if np.ptp(rates) == 0.0:  # every run alike: no spread to scale t by
+        lo = hi = rates[0]
+    else:
+        ci = ttest_1samp(rates, 0.0).confidence_interval(CONFIDENCE)
+        lo, hi = max(0.0, float(ci.low)), min(1.0, float(ci.high))
+    return {"runs": len(rates), "episodes": len(ev.runs[0].success[scenario]),
+            "run_rates": rates, "success_rate": float(np.mean(rates)), "ci95": [lo, hi],
+            "interval": "student t over runs"}
+
+
+def _paired(reference: Run, other: Run, scenario: str) -> dict[str, Any]:
+    """One run each on the same episodes: McNemar's exact test."""
+    ref, theirs = reference.success[scenario], other.success[scenario]
+    only_ref = sum(ref[s] and not theirs[s] for s in ref)
+    only_other = sum(theirs[s] and not ref[s] for s in ref)
+    return {"test": "mcnemar exact", "difference": (only_other - only_ref) / len(ref),
+            "only_reference": only_ref, "only_this": only_other,
+            "p_value": mcnemar_exact_p(only_ref, only_other)}
+
+
+def _between_runs(reference: Evaluation, other: Evaluation, scenario: str) -> dict[str, Any]:
+    """Several runs each: Welch's t-test on the runs' success rates."""
+    ref = [run.rate(scenario) for run in reference.runs]
+    theirs = [run.rate(scenario) for run in other.runs]
+    difference = float(np.mean(theirs) - np.mean(ref))
+    if np.ptp(ref) == 0.0 and np.ptp(theirs) == 0.0:  # no spread: no test
+        p, lo, hi = (1.0 if difference == 0.0 else 0.0), difference, difference
+    else:
+        with warnings.catch_warnings():  # one side without spread: scipy warns, still answers
+            warnings.simplefilter("ignore", RuntimeWarning)
+            test = ttest_ind(theirs, ref, equal_var=False)
+            ci = test.confidence_interval(CONFIDENCE)
+        p, lo, hi = float(test.pvalue), float(ci.low), float(ci.high)
+    return {"test": "welch t over runs", "difference": difference, "ci95": [_finite(lo),
+            _finite(hi)], "p_value": _finite(p)}
+
+
+def compare(evaluations: list[Evaluation]) -> dict[str, Any]:
+    """Per scenario of the reference (the first): every planner's success rate with its
+    interval, and each other one against the reference."""
+    reference, others = evaluations[0], evaluations[1:]
+    _check_same_episodes(reference, others)
+    for other in others:
+        if (len(other.runs) == 1) != (len(reference.runs) == 1):
+            raise UserError(f"compare: {reference.label} has {len(reference.runs)} run(s),"
+                            f" {other.label} {len(other.runs)}: give one run each (paired by"
+                            " episode) or two or more each (compared between runs)")
     scenarios: dict[str, Any] = {}
-    for scenario, ref in reference.success.items():
-        rates = {}
-        for ev in evaluations:
-            k, n = sum(ev.success[scenario].values()), len(ev.success[scenario])
-            lo, hi = wilson_interval(k, n)
-            rates[ev.label] = {"successes": k, "episodes": n, "success_rate": k / n,
-                               "ci95": [lo, hi]}
-        paired = {}
-        for other in others:
-            theirs = other.success[scenario]
-            only_ref = sum(ref[s] and not theirs[s] for s in ref)
-            only_other = sum(theirs[s] and not ref[s] for s in ref)
-            paired[other.label] = {
-                "difference": (sum(theirs.values()) - sum(ref.values())) / len(ref),
-                "only_reference": only_ref, "only_this": only_other,
-                "p_value": mcnemar_exact_p(only_ref, only_other)}
-        scenarios[scenario] = {"rates": rates, "against_reference": paired}
+    for scenario in reference.runs[0].success:
+        scenarios[scenario] = {
+            "rates": {ev.label: _rates(ev, scenario) for ev in evaluations},
+            "against_reference": {
+                other.label: (_paired(reference.runs[0], other.runs[0], scenario)
+                              if len(other.runs) == 1 else
+                              _between_runs(reference, other, scenario))
+                for other in others}}
     return {"reference": reference.label, "confidence": CONFIDENCE,
-            "sources": {ev.label: [str(p) for p in ev.sources] for ev in evaluations},
+            "sources": {ev.label: [[str(p) for p in run.sources] for run in ev.runs]
+                        for ev in evaluations},
             "scenarios": scenarios}
 
 
+def _pct(x: float | None) -> str:
+    return "-" if x is None else f"{100 * x:.1f}"
+
+
 def table(result: dict[str, Any]) -> str:
-    """The comparison as text: rates with intervals, then each against the reference."""
+    """The comparison as text: rates with intervals, then each against the reference (paired:
+    the episodes only the reference / only this one succeeded in; between runs: the
+    difference's interval)."""
     ref = result["reference"]
-    rows = [(f"{'scenario':<16}{'planner':<22}{'success':>8}{'95 % CI':>13}"
-             f"{'vs ' + ref:>24}{'only ref/this':>15}{'p':>8}")]
+    rows = [(f"{'scenario':<16}{'planner':<22}{'runs':>5}{'success':>9}{'95 % CI':>14}"
+             f"{'vs ' + ref:>22}{'only ref/this or CI':>22}{'p':>8}")]
     for scenario, s in result["scenarios"].items():
         for label, r in s["rates"].items():
-            lo, hi = r["ci95"]
-            vs, split, p = "", "", ""
+            vs, detail, p = "", "", ""
             if label in s["against_reference"]:
                 c = s["against_reference"][label]
                 vs = f"{100 * c['difference']:+.1f} pts"
-                split = f"{c['only_reference']}/{c['only_this']}"
-                p = f"{c['p_value']:.3f}"
-            ci = f"{100 * lo:.1f}-{100 * hi:.1f}%"
-            rows.append(f"{scenario:<16}{label:<22}{100 * r['success_rate']:>7.1f}%{ci:>13}"
-                        f"{vs:>24}{split:>15}{p:>8}")
+                detail = (f"{c['only_reference']}/{c['only_this']}" if "only_this" in c
+                          else f"{_pct(c['ci95'][0])} to {_pct(c['ci95'][1])} pts")
+                p = "-" if c["p_value"] is None else f"{c['p_value']:.3f}"
+            ci = f"{_pct(r['ci95'][0])}-{_pct(r['ci95'][1])}%"
+            rows.append(f"{scenario:<16}{label:<22}{r['runs']:>5}{_pct(r['success_rate']):>8}%"
+                        f"{ci:>14}{vs:>22}{detail:>22}{p:>8}")
     return "\n".join(rows)

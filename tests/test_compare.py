@@ -1,11 +1,12 @@
-"""safemove compare: Wilson intervals, McNemar's exact test on seed-paired episodes, and the
-refusals of results that are not the same episodes."""
+"""safemove compare: Wilson intervals, McNemar's exact test on seed-paired episodes, Welch's
+t-test between training runs, and the refusals of results that are not the same episodes."""
 
 import json
 import math
 from pathlib import Path
 
 import pytest
+from scipy.stats import t as student_t
 
 from runtime.errors import UserError
 from sim_stub.binomial import mcnemar_exact_p, wilson_interval
@@ -51,34 +52,69 @@ def test_compare_pairs_episodes_by_seed_and_pools_files_under_one_label(tmp_path
            _result(tmp_path / "d1.json", {"a": ["success", "collision"]}, first_seed=1000)]
     policy = [_result(tmp_path / "p0.json", {"a": ["collision", "success", "success", "success"]}),
               _result(tmp_path / "p1.json", {"a": ["success", "success"]}, first_seed=1000)]
-    out = compare([load_evaluation("dwa", dwa), load_evaluation("policy", policy)])
+    out = compare([load_evaluation("dwa", [dwa]), load_evaluation("policy", [policy])])
     a = out["scenarios"]["a"]
-    assert a["rates"]["dwa"]["successes"] == 3 and a["rates"]["dwa"]["episodes"] == 6
-    assert a["rates"]["policy"]["successes"] == 5
+    assert a["rates"]["dwa"]["success_rate"] == 0.5 and a["rates"]["dwa"]["episodes"] == 6
+    assert a["rates"]["policy"]["success_rate"] == pytest.approx(5 / 6)
     assert a["rates"]["policy"]["ci95"] == pytest.approx(list(_wilson(5, 6)))
     # seed 0 only the reference; seeds 1, 3 and 1001 only the policy
     paired = a["against_reference"]["policy"]
     assert (paired["only_reference"], paired["only_this"]) == (1, 3)
     assert paired["difference"] == pytest.approx(2 / 6)
     assert paired["p_value"] == pytest.approx(mcnemar_exact_p(1, 3))
-    assert out["reference"] == "dwa" and out["sources"]["policy"][1].endswith("p1.json")
+    assert out["reference"] == "dwa" and out["sources"]["policy"][0][1].endswith("p1.json")
 
 
 def test_compare_refuses_results_that_are_not_the_same_episodes(tmp_path):
-    ref = load_evaluation("dwa", [_result(tmp_path / "r.json", {"a": ["success"] * 4})])
-    short = load_evaluation("p", [_result(tmp_path / "s.json", {"a": ["success"] * 3})])
+    ref = load_evaluation("dwa", [[_result(tmp_path / "r.json", {"a": ["success"] * 4})]])
+    short = load_evaluation("p", [[_result(tmp_path / "s.json", {"a": ["success"] * 3})]])
     with pytest.raises(UserError, match=r"p has 3 seeds \(0-2\) of a, dwa 4 seeds \(0-3\)"):
         compare([ref, short])
-    reactive = load_evaluation("q", [_result(tmp_path / "c.json", {"a": ["success"] * 4},
-                                             crowd="reactive")])
+    reactive = load_evaluation("q", [[_result(tmp_path / "c.json", {"a": ["success"] * 4},
+                                              crowd="reactive")]])
     with pytest.raises(UserError, match="crowd=reactive"):
         compare([ref, reactive])
     # results from before --camera-hfov existed ran at the D435's 87 deg
-    old = load_evaluation("old", [_result(tmp_path / "o.json", {"a": ["success"] * 4},
-                                          camera_hfov_deg=None)])
+    old = load_evaluation("old", [[_result(tmp_path / "o.json", {"a": ["success"] * 4},
+                                           camera_hfov_deg=None)]])
     assert compare([ref, old])["scenarios"]["a"]["against_reference"]["old"]["p_value"] == 1.0
     with pytest.raises(UserError, match="seed 0 appears twice"):
-        load_evaluation("twice", [tmp_path / "r.json", tmp_path / "r.json"])
+        load_evaluation("twice", [[tmp_path / "r.json", tmp_path / "r.json"]])
+    # a second run of one planner may repeat the first's seeds, but must have them all
+    runs = load_evaluation("runs", [[tmp_path / "r.json"], [tmp_path / "s.json"]])
+    with pytest.raises(UserError, match=r"runs run 2 has 3 seeds \(0-2\) of a"):
+        compare([load_evaluation("dwa", [[tmp_path / "r.json"], [tmp_path / "r.json"]]), runs])
+    with pytest.raises(UserError, match="dwa has 1 run\\(s\\), both 2: give one run each"):
+        compare([ref, load_evaluation("both", [[tmp_path / "r.json"], [tmp_path / "r.json"]])])
+
+
+def test_several_runs_each_compare_between_runs_by_welch(tmp_path):
+    def runs(name, successes_per_run):  # one file per run, ten seeds of scenario a
+        return [[_result(tmp_path / f"{name}{i}.json",
+                         {"a": ["success"] * k + ["collision"] * (10 - k)})]
+                for i, k in enumerate(successes_per_run)]
+
+    ref = load_evaluation("ref", runs("r", [5, 6, 7]))
+    new = load_evaluation("new", runs("n", [8, 9]))
+    out = compare([ref, new])["scenarios"]["a"]
+    assert out["rates"]["ref"]["run_rates"] == pytest.approx([0.5, 0.6, 0.7])
+    # Student's t interval of the mean of three runs: 0.6 +- t(0.975, 2) * 0.1 / sqrt(3)
+    half = student_t.ppf(0.975, 2) * 0.1 / math.sqrt(3)
+    assert out["rates"]["ref"]["ci95"] == pytest.approx([0.6 - half, 0.6 + half])
+    # Welch's test from its formula: variances 0.01 and 0.005, Welch-Satterthwaite's df
+    va, vb = 0.01 / 3, 0.005 / 2
+    t = 0.25 / math.sqrt(va + vb)
+    df = (va + vb) ** 2 / (va ** 2 / 2 + vb ** 2 / 1)
+    c = out["against_reference"]["new"]
+    assert c["difference"] == pytest.approx(0.25)
+    assert c["p_value"] == pytest.approx(2 * student_t.sf(t, df))
+    half = student_t.ppf(0.975, df) * math.sqrt(va + vb)
+    assert c["ci95"] == pytest.approx([0.25 - half, 0.25 + half])
+    # runs without any spread: the interval is the rate, equal means are no difference
+    same = compare([load_evaluation("x", runs("x", [4, 4])),
+                    load_evaluation("y", runs("y", [4, 4]))])
+    assert same["scenarios"]["a"]["rates"]["x"]["ci95"] == [0.4, 0.4]
+    assert same["scenarios"]["a"]["against_reference"]["y"]["p_value"] == 1.0
 
 
 @pytest.mark.parametrize("content, message", [
@@ -93,19 +129,26 @@ def test_a_bad_result_file_is_one_line_naming_it(tmp_path, content, message):
     if content is not None:
         path.write_text(content)
     with pytest.raises(UserError, match=message) as err:
-        load_evaluation("bad", [path])
+        load_evaluation("bad", [[path]])
     assert str(path) in str(err.value)
 
 
 def test_compare_cli_prints_the_table_and_json_and_refuses_with_exit_2(tmp_path, safemove):
     ref = _result(tmp_path / "dwa.json", {"a": ["success", "collision"] * 5})
+    val = _result(tmp_path / "dwa_val.json", {"a": ["success"] * 2}, first_seed=1000)
     new = _result(tmp_path / "new.json", {"a": ["success"] * 10})
-    run = safemove(["compare", f"dwa={ref}", f"new={new}"])
+    new_val = _result(tmp_path / "new_val.json", {"a": ["collision"] * 2}, first_seed=1000)
+    run = safemove(["compare", f"dwa={ref}+{val}", f"new={new}+{new_val}"])
     assert run.wait(timeout=60) == 0, run.stderr[-2000:]
     result = json.loads(run.stdout)
-    assert result["scenarios"]["a"]["against_reference"]["new"]["only_this"] == 5
-    assert "95 % CI" in run.stderr and "+50.0 pts" in run.stderr
-    same = safemove(["compare", ref, ref])
+    paired = result["scenarios"]["a"]["against_reference"]["new"]
+    assert (paired["only_reference"], paired["only_this"]) == (2, 5)
+    assert "95 % CI" in run.stderr and "+25.0 pts" in run.stderr
+    runs = safemove(["compare", f"dwa={ref},{ref}", f"new={new},{ref}", "--json"])
+    assert runs.wait(timeout=60) == 0, runs.stderr[-2000:]
+    between = json.loads(runs.stdout)["scenarios"]["a"]["against_reference"]["new"]
+    assert between["test"] == "welch t over runs" and between["difference"] == pytest.approx(0.25)
+    same = safemove(["compare", str(ref), str(ref)])
     assert same.wait(timeout=60) == 2
     assert "a label appears twice" in same.stderr and "Traceback" not in same.stderr
     missing = safemove(["compare", f"dwa={ref}", f"new={tmp_path / 'none.json'}"])
