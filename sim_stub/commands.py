@@ -478,7 +478,8 @@ def _labelled_runs(text: str) -> tuple[str, list[list[Path]]]:
     label, sep, spec = text.rpartition("=")
     runs = [[Path(f) for f in run.split("+") if f] for run in (spec if sep else text).split(",")]
     if not runs or not all(runs) or (sep and not label):
-        raise argparse.ArgumentTypeError(f"expected [LABEL=]FILE[+FILE...][,FILE...], got {text!r}")
+        raise argparse.ArgumentTypeError(
+            f"expected [LABEL=]FILE[+FILE...][,FILE...], got {text!r}")
     return (label if sep else str(runs[0][0])), runs
 
 

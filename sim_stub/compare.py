@@ -76,6 +76,8 @@ def _read(path: Path) -> tuple[dict[str, Any], list[tuple[str, int, bool]]]:
         if not isinstance(scenario, str) or isinstance(seed, bool) or not isinstance(seed, int):
             raise UserError(f"compare: {path}: episodes[{i}] has a bad scenario or seed")
         rows.append((scenario, seed, status == "success"))
+    if not rows:
+        raise UserError(f"compare: {path}: no episodes")
     conditions = {k: result.get(k) for k in _CONDITIONS}
     if conditions["camera_hfov_deg"] is None:  # results from before --camera-hfov: the D435's
         conditions["camera_hfov_deg"] = D435_HFOV_DEG
@@ -122,12 +124,17 @@ def _check_same_episodes(reference: Evaluation, others: list[Evaluation]) -> Non
             raise UserError(f"compare: {other.label} ran with"
                             f" {_differ(other.conditions, reference.conditions)} in"
                             f" {reference.label}: not the same episodes")
-    for scenario, seeds in reference.runs[0].success.items():
-        for ev in [reference, *others]:
-            for i, run in enumerate(ev.runs):
-                theirs = set(run.success.get(scenario, {}))
+    expected = reference.runs[0].success
+    for ev in [reference, *others]:
+        for i, run in enumerate(ev.runs):
+            name = ev.label if len(ev.runs) == 1 else f"{ev.label} run {i + 1}"
+            if set(run.success) != set(expected):
+                raise UserError(f"compare: {name} has scenarios {sorted(run.success)},"
+                                f" {reference.label} {sorted(expected)}: compare results on"
+                                " the same episodes")
+            for scenario, seeds in expected.items():
+                theirs = set(run.success[scenario])
                 if theirs != set(seeds):
-                    name = ev.label if len(ev.runs) == 1 else f"{ev.label} run {i + 1}"
                     raise UserError(f"compare: {name} has {_seed_span(theirs)} of {scenario},"
                                     f" {reference.label} {_seed_span(set(seeds))}: compare"
                                     " results on the same episodes")

@@ -279,8 +279,8 @@ def table(result: dict[str, Any]) -> str:
     def cell(x: float | None, fmt: str) -> str:
         return "-" if x is None else format(x, fmt)
 
-    rows = [(f"{'scenario':<16}{'success':>9}{'95 % CI':>10}{'collision':>10}{'timeout':>9}{'at fault':>9}"
-             f"{'moving':>7}{'path m':>8}{'speed m/s':>10}{'shield':>8}")]
+    rows = [(f"{'scenario':<16}{'success':>9}{'95 % CI':>10}{'collision':>10}{'timeout':>9}"
+             f"{'at fault':>9}{'moving':>7}{'path m':>8}{'speed m/s':>10}{'shield':>8}")]
     for name, s in result["scenarios"].items():
         ci = f"{100 * s['success_ci95'][0]:.0f}-{100 * s['success_ci95'][1]:.0f}%"
         rows.append(f"{name:<16}{100 * s['success_rate']:>8.0f}%{ci:>10}"

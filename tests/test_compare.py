@@ -72,6 +72,10 @@ def test_compare_refuses_results_that_are_not_the_same_episodes(tmp_path):
         compare([ref, short])
     reactive = load_evaluation("q", [[_result(tmp_path / "c.json", {"a": ["success"] * 4},
                                               crowd="reactive")]])
+    other_room = load_evaluation("r2", [[_result(tmp_path / "b.json", {"a": ["success"] * 4,
+                                                                      "b": ["success"]})]])
+    with pytest.raises(UserError, match=r"r2 has scenarios \['a', 'b'\], dwa \['a'\]"):
+        compare([ref, other_room])  # b would be dropped unseen
     with pytest.raises(UserError, match="crowd=reactive"):
         compare([ref, reactive])
     # results from before --camera-hfov existed ran at the D435's 87 deg
@@ -121,6 +125,8 @@ def test_several_runs_each_compare_between_runs_by_welch(tmp_path):
     (None, "No such file"),
     ("{not json", "not a `safemove eval --json` result"),
     ('{"scenarios": {}}', "no 'episodes' list"),
+    ('{"episodes": []}', "no episodes"),
+    ('{"episodes": [3]}', r"episodes\[0\] lacks"),
     ('{"episodes": [{"scenario": "a", "seed": 0}]}', r"episodes\[0\] lacks"),
     ('{"episodes": [{"scenario": "a", "seed": "0", "status": "success"}]}', "bad scenario or seed"),
 ])
