@@ -484,25 +484,33 @@ def _labelled_runs(text: str) -> tuple[str, list[list[Path]]]:
 
 
 def add_compare(p: argparse.ArgumentParser) -> None:
+    from sim_stub.compare import OUTCOMES, SEEN_FOR_S
+
     p.add_argument("results", type=_labelled_runs, nargs="+",
                    metavar="[LABEL=]FILE[+FILE...][,FILE...]",
                    help="`safemove eval --json` results on the same scenarios and seeds, the"
                         " first the reference; FILE+FILE pools one policy's episodes (the test"
                         " and the validation seeds), commas separate training runs (seeds) of"
                         " one planner")
+    p.add_argument("--outcome", choices=OUTCOMES, default="success",
+                   help="what is counted per episode (default success); seen-collision: a"
+                        f" collision with a person in the camera's view for {SEEN_FOR_S:g} s or"
+                        " more, unseen-collision: any other collision")
     p.add_argument("--json", action="store_true", help="print only the JSON result")
     p.set_defaults(func=compare_run)
 
 
 def compare_run(args: argparse.Namespace) -> int:
-    """Success rates with their 95 % intervals; each planner against the first: one run each
-    paired by episode (McNemar's exact test), several each between runs (Welch's t-test)."""
+    """Rates of the outcome with their 95 % intervals; each planner against the first: one run
+    each paired by episode (McNemar's exact test), several each between runs (Welch's
+    t-test)."""
     from sim_stub.compare import compare, load_evaluation, table
 
     labels = [label for label, _ in args.results]
     if len(set(labels)) < len(labels):
         raise UserError(f"compare: a label appears twice in {labels}: name them LABEL=FILE")
-    result = compare([load_evaluation(label, runs) for label, runs in args.results])
+    result = compare([load_evaluation(label, runs, args.outcome)
+                      for label, runs in args.results])
     if not args.json:
         print(table(result), file=sys.stderr)
     print_json(result)

@@ -8,10 +8,15 @@ at least that uneven would be if neither were better; each rate gets its 95 % Wi
 
 A trained policy is also one draw of its training seed, which moves the rates as much as the
 episodes do. Given several training runs of each (every run scored on the same episodes), the
-comparison is between runs: each run's success rate is one sample, the rate's interval is
+comparison is between runs: each run's rate is one sample, the rate's interval is
 Student's t over the runs, and two planners differ by Welch's t-test. Episodes of one run may
 come from several files (the test and the validation seeds), pooled; no (scenario, seed) may
 appear twice in one run.
+
+Success is the default outcome; the others count collisions, and, since a policy's decisions
+can only avoid people it saw coming, collisions with a person who had been in the camera's view
+for at least a second (`seen-collision`) apart from the rest (`unseen-collision`: out of view,
+just entered it, or a fixed obstacle).
 """
 
 from __future__ import annotations
@@ -33,16 +38,35 @@ from sim_stub.binomial import CONFIDENCE, mcnemar_exact_p, wilson_interval
 # the settings that must agree for two results' episodes to be the same episodes
 _CONDITIONS = ("fps", "noise", "crowd", "camera_hfov_deg")
 
+OUTCOMES = ("success", "collision", "seen-collision", "unseen-collision")
+# how long a person must have been in view for a collision with them to count as seen coming
+SEEN_FOR_S = 1.0
+
+
+def _has(outcome: str, ep: dict[str, Any]) -> bool | None:
+    """Whether an episode ended in `outcome`; None when the result cannot tell (an episode
+    from before `contact_in_view_s` was recorded)."""
+    if outcome == "success":
+        return ep["status"] == "success"
+    if ep["status"] != "collision":
+        return False
+    if outcome == "collision":
+        return True
+    if "contact_in_view_s" not in ep:
+        return None
+    seen = ep["contact_in_view_s"] is not None and ep["contact_in_view_s"] >= SEEN_FOR_S
+    return seen == (outcome == "seen-collision")
+
 
 @dataclass(frozen=True)
 class Run:
-    """One policy's (one training run's) outcomes: success or not per (scenario, seed)."""
+    """One policy's (one training run's) outcomes: the outcome or not per (scenario, seed)."""
 
     sources: tuple[Path, ...]
-    success: dict[str, dict[int, bool]]
+    outcome: dict[str, dict[int, bool]]
 
     def rate(self, scenario: str) -> float:
-        outcomes = self.success[scenario]
+        outcomes = self.outcome[scenario]
         return sum(outcomes.values()) / len(outcomes)
 
 
@@ -53,10 +77,11 @@ class Evaluation:
     label: str
     conditions: dict[str, Any]
     runs: tuple[Run, ...]
+    outcome: str = "success"
 
 
-def _read(path: Path) -> tuple[dict[str, Any], list[tuple[str, int, bool]]]:
-    """One `safemove eval --json` result: its conditions and (scenario, seed, success) rows."""
+def _read(path: Path, outcome: str) -> tuple[dict[str, Any], list[tuple[str, int, bool]]]:
+    """One `safemove eval --json` result: its conditions and (scenario, seed, outcome) rows."""
     try:
         result = json.loads(path.read_text())
     except OSError as exc:
@@ -69,13 +94,17 @@ def _read(path: Path) -> tuple[dict[str, Any], list[tuple[str, int, bool]]]:
     rows = []
     for i, ep in enumerate(result["episodes"]):
         try:
-            scenario, seed, status = ep["scenario"], ep["seed"], ep["status"]
+            scenario, seed, has = ep["scenario"], ep["seed"], _has(outcome, ep)
         except (KeyError, TypeError):
             raise UserError(f"compare: {path}: episodes[{i}] lacks 'scenario', 'seed' or"
                             " 'status'") from None
         if not isinstance(scenario, str) or isinstance(seed, bool) or not isinstance(seed, int):
             raise UserError(f"compare: {path}: episodes[{i}] has a bad scenario or seed")
-        rows.append((scenario, seed, status == "success"))
+        if has is None:
+            raise UserError(f"compare: {path}: episodes[{i}] ({scenario} seed {seed}) has no"
+                            f" 'contact_in_view_s', which --outcome {outcome} needs (a result"
+                            " from before it was recorded: evaluate again)")
+        rows.append((scenario, seed, has))
     if not rows:
         raise UserError(f"compare: {path}: no episodes")
     conditions = {k: result.get(k) for k in _CONDITIONS}
@@ -89,29 +118,29 @@ def _differ(a: dict[str, Any], b: dict[str, Any]) -> str:
     return ", ".join(f"{k}={a[k]} (against {b[k]})" for k in _CONDITIONS if a[k] != b[k])
 
 
-def load_evaluation(label: str, runs: list[list[Path]]) -> Evaluation:
+def load_evaluation(label: str, runs: list[list[Path]], outcome: str = "success") -> Evaluation:
     """`runs`: each run's files, whose episodes pool; every file under one label must have run
-    under the same conditions."""
+    under the same conditions. `outcome`: one of OUTCOMES, what each episode counts as."""
     first: tuple[Path, dict[str, Any]] | None = None
     loaded = []
     for paths in runs:
-        success: dict[str, dict[int, bool]] = {}
+        found_outcomes: dict[str, dict[int, bool]] = {}
         for path in paths:
-            found, rows = _read(path)
+            found, rows = _read(path, outcome)
             if first is None:
                 first = (path, found)
             elif found != first[1]:
                 raise UserError(f"compare: {path}: ran with {_differ(found, first[1])} in"
                                 f" {first[0]}")
             for scenario, seed, ok in rows:
-                seeds = success.setdefault(scenario, {})
+                seeds = found_outcomes.setdefault(scenario, {})
                 if seed in seeds:
                     raise UserError(f"compare: {path}: {scenario} seed {seed} appears twice in"
                                     f" one run of {label}")
                 seeds[seed] = ok
-        loaded.append(Run(tuple(paths), success))
+        loaded.append(Run(tuple(paths), found_outcomes))
     assert first is not None  # the parser wants at least one file
-    return Evaluation(label, first[1], tuple(loaded))
+    return Evaluation(label, first[1], tuple(loaded), outcome)
 
 
 def _seed_span(seeds: set[int]) -> str:
@@ -124,16 +153,16 @@ def _check_same_episodes(reference: Evaluation, others: list[Evaluation]) -> Non
             raise UserError(f"compare: {other.label} ran with"
                             f" {_differ(other.conditions, reference.conditions)} in"
                             f" {reference.label}: not the same episodes")
-    expected = reference.runs[0].success
+    expected = reference.runs[0].outcome
     for ev in [reference, *others]:
         for i, run in enumerate(ev.runs):
             name = ev.label if len(ev.runs) == 1 else f"{ev.label} run {i + 1}"
-            if set(run.success) != set(expected):
-                raise UserError(f"compare: {name} has scenarios {sorted(run.success)},"
+            if set(run.outcome) != set(expected):
+                raise UserError(f"compare: {name} has scenarios {sorted(run.outcome)},"
                                 f" {reference.label} {sorted(expected)}: compare results on"
                                 " the same episodes")
             for scenario, seeds in expected.items():
-                theirs = set(run.success[scenario])
+                theirs = set(run.outcome[scenario])
                 if theirs != set(seeds):
                     raise UserError(f"compare: {name} has {_seed_span(theirs)} of {scenario},"
                                     f" {reference.label} {_seed_span(set(seeds))}: compare"
@@ -145,26 +174,27 @@ def _finite(x: float) -> float | None:
 
 
 def _rates(ev: Evaluation, scenario: str) -> dict[str, Any]:
-    """Success over one run (Wilson interval) or the mean over runs (Student's t interval)."""
+    """The outcome's rate over one run (Wilson interval) or the mean over runs (Student's t
+    interval)."""
     rates = [run.rate(scenario) for run in ev.runs]
     if len(ev.runs) == 1:
-        outcomes = ev.runs[0].success[scenario]
+        outcomes = ev.runs[0].outcome[scenario]
         lo, hi = wilson_interval(sum(outcomes.values()), len(outcomes))
-        return {"runs": 1, "episodes": len(outcomes), "success_rate": rates[0],
+        return {"runs": 1, "episodes": len(outcomes), "rate": rates[0],
                 "ci95": [lo, hi], "interval": "wilson"}
     if np.ptp(rates) == 0.0:  # every run alike: no spread to scale t by
         lo = hi = rates[0]
     else:
         ci = ttest_1samp(rates, 0.0).confidence_interval(CONFIDENCE)
         lo, hi = max(0.0, float(ci.low)), min(1.0, float(ci.high))
-    return {"runs": len(rates), "episodes": len(ev.runs[0].success[scenario]),
-            "run_rates": rates, "success_rate": float(np.mean(rates)), "ci95": [lo, hi],
+    return {"runs": len(rates), "episodes": len(ev.runs[0].outcome[scenario]),
+            "run_rates": rates, "rate": float(np.mean(rates)), "ci95": [lo, hi],
             "interval": "student t over runs"}
 
 
 def _paired(reference: Run, other: Run, scenario: str) -> dict[str, Any]:
     """One run each on the same episodes: McNemar's exact test."""
-    ref, theirs = reference.success[scenario], other.success[scenario]
+    ref, theirs = reference.outcome[scenario], other.outcome[scenario]
     only_ref = sum(ref[s] and not theirs[s] for s in ref)
     only_other = sum(theirs[s] and not ref[s] for s in ref)
     return {"test": "mcnemar exact", "difference": (only_other - only_ref) / len(ref),
@@ -173,7 +203,7 @@ def _paired(reference: Run, other: Run, scenario: str) -> dict[str, Any]:
 
 
 def _between_runs(reference: Evaluation, other: Evaluation, scenario: str) -> dict[str, Any]:
-    """Several runs each: Welch's t-test on the runs' success rates."""
+    """Several runs each: Welch's t-test on the runs' rates."""
     ref = [run.rate(scenario) for run in reference.runs]
     theirs = [run.rate(scenario) for run in other.runs]
     difference = float(np.mean(theirs) - np.mean(ref))
@@ -190,9 +220,10 @@ def _between_runs(reference: Evaluation, other: Evaluation, scenario: str) -> di
 
 
 def compare(evaluations: list[Evaluation]) -> dict[str, Any]:
-    """Per scenario of the reference (the first): every planner's success rate with its
+    """Per scenario of the reference (the first): every planner's rate of the outcome with its
     interval, and each other one against the reference."""
     reference, others = evaluations[0], evaluations[1:]
+    assert all(ev.outcome == reference.outcome for ev in others)  # one --outcome for all
     _check_same_episodes(reference, others)
     for other in others:
         if (len(other.runs) == 1) != (len(reference.runs) == 1):
@@ -200,7 +231,7 @@ def compare(evaluations: list[Evaluation]) -> dict[str, Any]:
                             f" {other.label} {len(other.runs)}: give one run each (paired by"
                             " episode) or two or more each (compared between runs)")
     scenarios: dict[str, Any] = {}
-    for scenario in reference.runs[0].success:
+    for scenario in reference.runs[0].outcome:
         scenarios[scenario] = {
             "rates": {ev.label: _rates(ev, scenario) for ev in evaluations},
             "against_reference": {
@@ -208,7 +239,7 @@ def compare(evaluations: list[Evaluation]) -> dict[str, Any]:
                               if len(other.runs) == 1 else
                               _between_runs(reference, other, scenario))
                 for other in others}}
-    return {"reference": reference.label, "confidence": CONFIDENCE,
+    return {"outcome": reference.outcome, "reference": reference.label, "confidence": CONFIDENCE,
             "sources": {ev.label: [[str(p) for p in run.sources] for run in ev.runs]
                         for ev in evaluations},
             "scenarios": scenarios}
@@ -220,10 +251,10 @@ def _pct(x: float | None) -> str:
 
 def table(result: dict[str, Any]) -> str:
     """The comparison as text: rates with intervals, then each against the reference (paired:
-    the episodes only the reference / only this one succeeded in; between runs: the
+    the episodes only the reference / only this one ended in the outcome; between runs: the
     difference's interval)."""
     ref = result["reference"]
-    rows = [(f"{'scenario':<16}{'planner':<22}{'runs':>5}{'success':>9}{'95 % CI':>14}"
+    rows = [(f"{'scenario':<16}{'planner':<22}{'runs':>5}{result['outcome']:>17}{'95 % CI':>14}"
              f"{'vs ' + ref:>22}{'only ref/this or CI':>22}{'p':>8}")]
     for scenario, s in result["scenarios"].items():
         for label, r in s["rates"].items():
@@ -235,6 +266,6 @@ def table(result: dict[str, Any]) -> str:
                           else f"{_pct(c['ci95'][0])} to {_pct(c['ci95'][1])} pts")
                 p = "-" if c["p_value"] is None else f"{c['p_value']:.3f}"
             ci = f"{_pct(r['ci95'][0])}-{_pct(r['ci95'][1])}%"
-            rows.append(f"{scenario:<16}{label:<22}{r['runs']:>5}{_pct(r['success_rate']):>8}%"
+            rows.append(f"{scenario:<16}{label:<22}{r['runs']:>5}{_pct(r['rate']):>16}%"
                         f"{ci:>14}{vs:>22}{detail:>22}{p:>8}")
     return "\n".join(rows)

@@ -1,5 +1,6 @@
 """safemove compare: Wilson intervals, McNemar's exact test on seed-paired episodes, Welch's
-t-test between training runs, and the refusals of results that are not the same episodes."""
+t-test between training runs, the outcomes counted, and the refusals of results that are not
+the same episodes."""
 
 import json
 import math
@@ -54,8 +55,8 @@ def test_compare_pairs_episodes_by_seed_and_pools_files_under_one_label(tmp_path
               _result(tmp_path / "p1.json", {"a": ["success", "success"]}, first_seed=1000)]
     out = compare([load_evaluation("dwa", [dwa]), load_evaluation("policy", [policy])])
     a = out["scenarios"]["a"]
-    assert a["rates"]["dwa"]["success_rate"] == 0.5 and a["rates"]["dwa"]["episodes"] == 6
-    assert a["rates"]["policy"]["success_rate"] == pytest.approx(5 / 6)
+    assert a["rates"]["dwa"]["rate"] == 0.5 and a["rates"]["dwa"]["episodes"] == 6
+    assert a["rates"]["policy"]["rate"] == pytest.approx(5 / 6)
     assert a["rates"]["policy"]["ci95"] == pytest.approx(list(_wilson(5, 6)))
     # seed 0 only the reference; seeds 1, 3 and 1001 only the policy
     paired = a["against_reference"]["policy"]
@@ -121,6 +122,36 @@ def test_several_runs_each_compare_between_runs_by_welch(tmp_path):
     assert same["scenarios"]["a"]["against_reference"]["y"]["p_value"] == 1.0
 
 
+def test_collisions_split_by_how_long_the_person_had_been_in_view(tmp_path):
+    # seconds in view at contact: None a fixed obstacle, 0 out of view, then 0.5 s and 1 s
+    episodes = [{"scenario": "a", "seed": i, "status": status, "contact_in_view_s": seen}
+                for i, (status, seen) in enumerate([
+                    ("success", None), ("timeout", None), ("collision", None),
+                    ("collision", 0.0), ("collision", 0.5), ("collision", 1.0),
+                    ("collision", 2.5)])]
+    path = tmp_path / "r.json"
+    path.write_text(json.dumps({"episodes": episodes}))
+
+    def counted(outcome):
+        run = load_evaluation("p", [[path]], outcome).runs[0]
+        return sorted(seed for seed, has in run.outcome["a"].items() if has)
+
+    assert counted("success") == [0]
+    assert counted("collision") == [2, 3, 4, 5, 6]
+    assert counted("seen-collision") == [5, 6]
+    assert counted("unseen-collision") == [2, 3, 4]
+    out = compare([load_evaluation("p", [[path]], "seen-collision")])
+    assert out["outcome"] == "seen-collision"
+    assert out["scenarios"]["a"]["rates"]["p"]["rate"] == pytest.approx(2 / 7)
+    # a result from before contact_in_view_s was recorded cannot tell seen from unseen
+    old = _result(tmp_path / "old.json", {"a": ["success", "collision"]})
+    assert load_evaluation("old", [[old]], "collision").runs[0].outcome["a"] == {0: False,
+                                                                                1: True}
+    with pytest.raises(UserError, match=r"episodes\[1\] \(a seed 1\) has no"
+                                        r" 'contact_in_view_s', which --outcome seen-collision"):
+        load_evaluation("old", [[old]], "seen-collision")
+
+
 @pytest.mark.parametrize("content, message", [
     (None, "No such file"),
     ("{not json", "not a `safemove eval --json` result"),
@@ -154,6 +185,10 @@ def test_compare_cli_prints_the_table_and_json_and_refuses_with_exit_2(tmp_path,
     assert runs.wait(timeout=60) == 0, runs.stderr[-2000:]
     between = json.loads(runs.stdout)["scenarios"]["a"]["against_reference"]["new"]
     assert between["test"] == "welch t over runs" and between["difference"] == pytest.approx(0.25)
+    collisions = safemove(["compare", f"dwa={ref}", f"new={new}", "--outcome", "collision"])
+    assert collisions.wait(timeout=60) == 0, collisions.stderr[-2000:]
+    fewer = json.loads(collisions.stdout)["scenarios"]["a"]["against_reference"]["new"]
+    assert fewer["difference"] == pytest.approx(-0.5) and "collision" in collisions.stderr
     same = safemove(["compare", str(ref), str(ref)])
     assert same.wait(timeout=60) == 2
     assert "a label appears twice" in same.stderr and "Traceback" not in same.stderr
