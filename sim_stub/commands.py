@@ -484,7 +484,7 @@ def _labelled_runs(text: str) -> tuple[str, list[list[Path]]]:
 
 
 def add_compare(p: argparse.ArgumentParser) -> None:
-    from sim_stub.compare import OUTCOMES, SEEN_FOR_S
+    from sim_stub.compare import OUTCOMES, Outcome
 
     p.add_argument("results", type=_labelled_runs, nargs="+",
                    metavar="[LABEL=]FILE[+FILE...][,FILE...]",
@@ -494,8 +494,10 @@ def add_compare(p: argparse.ArgumentParser) -> None:
                         " one planner")
     p.add_argument("--outcome", choices=OUTCOMES, default="success",
                    help="what is counted per episode (default success); seen-collision: a"
-                        f" collision with a person in the camera's view for {SEEN_FOR_S:g} s or"
-                        " more, unseen-collision: any other collision")
+                        " collision with a person who had been in the camera's view for"
+                        " --seen-s or more, unseen-collision: any other collision")
+    p.add_argument("--seen-s", type=float, default=Outcome().seen_s, metavar="S",
+                   help="seconds in view that make a person seen coming (default %(default)g)")
     p.add_argument("--json", action="store_true", help="print only the JSON result")
     p.set_defaults(func=compare_run)
 
@@ -504,13 +506,15 @@ def compare_run(args: argparse.Namespace) -> int:
     """Rates of the outcome with their 95 % intervals; each planner against the first: one run
     each paired by episode (McNemar's exact test), several each between runs (Welch's
     t-test)."""
-    from sim_stub.compare import compare, load_evaluation, table
+    from sim_stub.compare import Outcome, compare, load_evaluation, table
 
     labels = [label for label, _ in args.results]
     if len(set(labels)) < len(labels):
         raise UserError(f"compare: a label appears twice in {labels}: name them LABEL=FILE")
-    result = compare([load_evaluation(label, runs, args.outcome)
-                      for label, runs in args.results])
+    if not (math.isfinite(args.seen_s) and args.seen_s >= 0.0):
+        raise UserError(f"compare: --seen-s {args.seen_s}: give seconds, 0 or more")
+    outcome = Outcome(args.outcome, args.seen_s)
+    result = compare([load_evaluation(label, runs, outcome) for label, runs in args.results])
     if not args.json:
         print(table(result), file=sys.stderr)
     print_json(result)

@@ -39,23 +39,32 @@ from sim_stub.binomial import CONFIDENCE, mcnemar_exact_p, wilson_interval
 _CONDITIONS = ("fps", "noise", "crowd", "camera_hfov_deg")
 
 OUTCOMES = ("success", "collision", "seen-collision", "unseen-collision")
-# how long a person must have been in view for a collision with them to count as seen coming
-SEEN_FOR_S = 1.0
 
 
-def _has(outcome: str, ep: dict[str, Any]) -> bool | None:
-    """Whether an episode ended in `outcome`; None when the result cannot tell (an episode
-    from before `contact_in_view_s` was recorded)."""
-    if outcome == "success":
-        return ep["status"] == "success"
-    if ep["status"] != "collision":
-        return False
-    if outcome == "collision":
-        return True
-    if "contact_in_view_s" not in ep:
-        return None
-    seen = ep["contact_in_view_s"] is not None and ep["contact_in_view_s"] >= SEEN_FOR_S
-    return seen == (outcome == "seen-collision")
+@dataclass(frozen=True)
+class Outcome:
+    """What an episode counts as. `seen_s`: how long a person must have been in the camera's
+    view for a collision with them to count as seen coming."""
+
+    name: str = "success"
+    seen_s: float = 1.0
+
+    def __str__(self) -> str:
+        return self.name if "seen" not in self.name else f"{self.name} ({self.seen_s:g} s)"
+
+    def of(self, ep: dict[str, Any]) -> bool | None:
+        """Whether the episode ended in this outcome; None when the result cannot tell (an
+        episode from before `contact_in_view_s` was recorded)."""
+        if self.name == "success":
+            return ep["status"] == "success"
+        if ep["status"] != "collision":
+            return False
+        if self.name == "collision":
+            return True
+        if "contact_in_view_s" not in ep:
+            return None
+        in_view = ep["contact_in_view_s"]  # None: a fixed obstacle
+        return (in_view is not None and in_view >= self.seen_s) == (self.name == "seen-collision")
 
 
 @dataclass(frozen=True)
@@ -77,10 +86,10 @@ class Evaluation:
     label: str
     conditions: dict[str, Any]
     runs: tuple[Run, ...]
-    outcome: str = "success"
+    outcome: Outcome = Outcome()
 
 
-def _read(path: Path, outcome: str) -> tuple[dict[str, Any], list[tuple[str, int, bool]]]:
+def _read(path: Path, outcome: Outcome) -> tuple[dict[str, Any], list[tuple[str, int, bool]]]:
     """One `safemove eval --json` result: its conditions and (scenario, seed, outcome) rows."""
     try:
         result = json.loads(path.read_text())
@@ -94,7 +103,7 @@ def _read(path: Path, outcome: str) -> tuple[dict[str, Any], list[tuple[str, int
     rows = []
     for i, ep in enumerate(result["episodes"]):
         try:
-            scenario, seed, has = ep["scenario"], ep["seed"], _has(outcome, ep)
+            scenario, seed, has = ep["scenario"], ep["seed"], outcome.of(ep)
         except (KeyError, TypeError):
             raise UserError(f"compare: {path}: episodes[{i}] lacks 'scenario', 'seed' or"
                             " 'status'") from None
@@ -102,8 +111,8 @@ def _read(path: Path, outcome: str) -> tuple[dict[str, Any], list[tuple[str, int
             raise UserError(f"compare: {path}: episodes[{i}] has a bad scenario or seed")
         if has is None:
             raise UserError(f"compare: {path}: episodes[{i}] ({scenario} seed {seed}) has no"
-                            f" 'contact_in_view_s', which --outcome {outcome} needs (a result"
-                            " from before it was recorded: evaluate again)")
+                            f" 'contact_in_view_s', which --outcome {outcome.name} needs (a"
+                            " result from before it was recorded: evaluate again)")
         rows.append((scenario, seed, has))
     if not rows:
         raise UserError(f"compare: {path}: no episodes")
@@ -118,9 +127,10 @@ def _differ(a: dict[str, Any], b: dict[str, Any]) -> str:
     return ", ".join(f"{k}={a[k]} (against {b[k]})" for k in _CONDITIONS if a[k] != b[k])
 
 
-def load_evaluation(label: str, runs: list[list[Path]], outcome: str = "success") -> Evaluation:
+def load_evaluation(label: str, runs: list[list[Path]],
+                    outcome: Outcome = Outcome()) -> Evaluation:
     """`runs`: each run's files, whose episodes pool; every file under one label must have run
-    under the same conditions. `outcome`: one of OUTCOMES, what each episode counts as."""
+    under the same conditions."""
     first: tuple[Path, dict[str, Any]] | None = None
     loaded = []
     for paths in runs:
@@ -239,7 +249,7 @@ def compare(evaluations: list[Evaluation]) -> dict[str, Any]:
                               if len(other.runs) == 1 else
                               _between_runs(reference, other, scenario))
                 for other in others}}
-    return {"outcome": reference.outcome, "reference": reference.label, "confidence": CONFIDENCE,
+    return {"outcome": str(reference.outcome), "reference": reference.label, "confidence": CONFIDENCE,
             "sources": {ev.label: [[str(p) for p in run.sources] for run in ev.runs]
                         for ev in evaluations},
             "scenarios": scenarios}
@@ -254,7 +264,8 @@ def table(result: dict[str, Any]) -> str:
     the episodes only the reference / only this one ended in the outcome; between runs: the
     difference's interval)."""
     ref = result["reference"]
-    rows = [(f"{'scenario':<16}{'planner':<22}{'runs':>5}{result['outcome']:>17}{'95 % CI':>14}"
+    rows = [f"outcome: {result['outcome']}",
+            (f"{'scenario':<16}{'planner':<22}{'runs':>5}{'rate':>9}{'95 % CI':>14}"
              f"{'vs ' + ref:>22}{'only ref/this or CI':>22}{'p':>8}")]
     for scenario, s in result["scenarios"].items():
         for label, r in s["rates"].items():
@@ -266,6 +277,6 @@ def table(result: dict[str, Any]) -> str:
                           else f"{_pct(c['ci95'][0])} to {_pct(c['ci95'][1])} pts")
                 p = "-" if c["p_value"] is None else f"{c['p_value']:.3f}"
             ci = f"{_pct(r['ci95'][0])}-{_pct(r['ci95'][1])}%"
-            rows.append(f"{scenario:<16}{label:<22}{r['runs']:>5}{_pct(r['rate']):>16}%"
+            rows.append(f"{scenario:<16}{label:<22}{r['runs']:>5}{_pct(r['rate']):>8}%"
                         f"{ci:>14}{vs:>22}{detail:>22}{p:>8}")
     return "\n".join(rows)

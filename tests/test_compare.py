@@ -11,7 +11,7 @@ from scipy.stats import t as student_t
 
 from runtime.errors import UserError
 from sim_stub.binomial import mcnemar_exact_p, wilson_interval
-from sim_stub.compare import compare, load_evaluation
+from sim_stub.compare import Outcome, compare, load_evaluation
 
 
 def _wilson(k: int, n: int, z: float = 1.959963984540054) -> tuple[float, float]:
@@ -132,24 +132,26 @@ def test_collisions_split_by_how_long_the_person_had_been_in_view(tmp_path):
     path = tmp_path / "r.json"
     path.write_text(json.dumps({"episodes": episodes}))
 
-    def counted(outcome):
-        run = load_evaluation("p", [[path]], outcome).runs[0]
+    def counted(*outcome):
+        run = load_evaluation("p", [[path]], Outcome(*outcome)).runs[0]
         return sorted(seed for seed, has in run.outcome["a"].items() if has)
 
     assert counted("success") == [0]
     assert counted("collision") == [2, 3, 4, 5, 6]
     assert counted("seen-collision") == [5, 6]
     assert counted("unseen-collision") == [2, 3, 4]
-    out = compare([load_evaluation("p", [[path]], "seen-collision")])
-    assert out["outcome"] == "seen-collision"
+    assert counted("seen-collision", 0.5) == [4, 5, 6]  # a shorter look counts as seen
+    assert counted("unseen-collision", 2.0) == [2, 3, 4, 5]
+    out = compare([load_evaluation("p", [[path]], Outcome("seen-collision"))])
+    assert out["outcome"] == "seen-collision (1 s)"
     assert out["scenarios"]["a"]["rates"]["p"]["rate"] == pytest.approx(2 / 7)
     # a result from before contact_in_view_s was recorded cannot tell seen from unseen
     old = _result(tmp_path / "old.json", {"a": ["success", "collision"]})
-    assert load_evaluation("old", [[old]], "collision").runs[0].outcome["a"] == {0: False,
-                                                                                1: True}
+    assert load_evaluation("old", [[old]], Outcome("collision")).runs[0].outcome["a"] == {
+        0: False, 1: True}
     with pytest.raises(UserError, match=r"episodes\[1\] \(a seed 1\) has no"
                                         r" 'contact_in_view_s', which --outcome seen-collision"):
-        load_evaluation("old", [[old]], "seen-collision")
+        load_evaluation("old", [[old]], Outcome("seen-collision"))
 
 
 @pytest.mark.parametrize("content, message", [
@@ -188,7 +190,11 @@ def test_compare_cli_prints_the_table_and_json_and_refuses_with_exit_2(tmp_path,
     collisions = safemove(["compare", f"dwa={ref}", f"new={new}", "--outcome", "collision"])
     assert collisions.wait(timeout=60) == 0, collisions.stderr[-2000:]
     fewer = json.loads(collisions.stdout)["scenarios"]["a"]["against_reference"]["new"]
-    assert fewer["difference"] == pytest.approx(-0.5) and "collision" in collisions.stderr
+    assert fewer["difference"] == pytest.approx(-0.5) and "outcome: collision" in collisions.stderr
+    bad = safemove(["compare", f"dwa={ref}", f"new={new}", "--seen-s", "nan"])
+    assert bad.wait(timeout=60) == 2
+    (line,) = bad.stderr.strip().splitlines()
+    assert "--seen-s nan" in line and "Traceback" not in line
     same = safemove(["compare", str(ref), str(ref)])
     assert same.wait(timeout=60) == 2
     assert "a label appears twice" in same.stderr and "Traceback" not in same.stderr
