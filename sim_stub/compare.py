@@ -15,7 +15,7 @@ appear twice in one run.
 
 Success is the default outcome; the others count collisions, and, since a policy's decisions
 can only avoid people it saw coming, collisions with a person who had been in the camera's view
-for at least a second (`seen-collision`) apart from the rest (`unseen-collision`: out of view,
+for at least `seen_s`, a second unless told (`seen-collision`), apart from the rest (`unseen-collision`: out of view,
 just entered it, or a fixed obstacle).
 """
 
@@ -53,17 +53,19 @@ class Outcome:
         return self.name if "seen" not in self.name else f"{self.name} ({self.seen_s:g} s)"
 
     def of(self, ep: dict[str, Any]) -> bool | None:
-        """Whether the episode ended in this outcome; None when the result cannot tell (an
-        episode from before `contact_in_view_s` was recorded)."""
+        """Whether the episode ended in this outcome; None when the result cannot tell (no
+        number in `contact_in_view_s`: a result from before it was recorded)."""
         if self.name == "success":
             return ep["status"] == "success"
         if ep["status"] != "collision":
             return False
         if self.name == "collision":
             return True
-        if "contact_in_view_s" not in ep:
+        in_view = ep.get("contact_in_view_s", "missing")  # None: a fixed obstacle
+        if in_view is not None and (isinstance(in_view, bool)
+                                    or not isinstance(in_view, (int, float))
+                                    or not math.isfinite(in_view)):
             return None
-        in_view = ep["contact_in_view_s"]  # None: a fixed obstacle
         return (in_view is not None and in_view >= self.seen_s) == (self.name == "seen-collision")
 
 
@@ -111,8 +113,9 @@ def _read(path: Path, outcome: Outcome) -> tuple[dict[str, Any], list[tuple[str,
             raise UserError(f"compare: {path}: episodes[{i}] has a bad scenario or seed")
         if has is None:
             raise UserError(f"compare: {path}: episodes[{i}] ({scenario} seed {seed}) has no"
-                            f" 'contact_in_view_s', which --outcome {outcome.name} needs (a"
-                            " result from before it was recorded: evaluate again)")
+                            f" number in 'contact_in_view_s', which --outcome {outcome.name}"
+                            " needs (results from before it was recorded lack it: evaluate"
+                            " again)")
         rows.append((scenario, seed, has))
     if not rows:
         raise UserError(f"compare: {path}: no episodes")

@@ -149,9 +149,14 @@ def test_collisions_split_by_how_long_the_person_had_been_in_view(tmp_path):
     old = _result(tmp_path / "old.json", {"a": ["success", "collision"]})
     assert load_evaluation("old", [[old]], Outcome("collision")).runs[0].outcome["a"] == {
         0: False, 1: True}
-    with pytest.raises(UserError, match=r"episodes\[1\] \(a seed 1\) has no"
+    with pytest.raises(UserError, match=r"episodes\[1\] \(a seed 1\) has no number in"
                                         r" 'contact_in_view_s', which --outcome seen-collision"):
         load_evaluation("old", [[old]], Outcome("seen-collision"))
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"episodes": [{"scenario": "a", "seed": 0, "status": "collision",
+                                             "contact_in_view_s": "2 s"}]}))
+    with pytest.raises(UserError, match=r"episodes\[0\] \(a seed 0\) has no number in"):
+        load_evaluation("bad", [[bad]], Outcome("unseen-collision"))
 
 
 @pytest.mark.parametrize("content, message", [
