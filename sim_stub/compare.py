@@ -15,8 +15,8 @@ appear twice in one run.
 
 Success is the default outcome; the others count collisions, and, since a policy's decisions
 can only avoid people it saw coming, collisions with a person who had been in the camera's view
-for at least `seen_s`, a second unless told (`seen-collision`), apart from the rest (`unseen-collision`: out of view,
-just entered it, or a fixed obstacle).
+for at least `seen_s`, a second unless told (`seen-collision`), apart from the rest
+(`unseen-collision`: out of view, just entered it, or a fixed obstacle).
 """
 
 from __future__ import annotations
