@@ -49,6 +49,10 @@ class Outcome:
     name: str = "success"
     seen_s: float = 1.0
 
+    def __post_init__(self) -> None:
+        if self.name not in OUTCOMES:
+            raise ValueError(f"outcome {self.name!r}: one of {OUTCOMES}")
+
     def __str__(self) -> str:
         return self.name if "seen" not in self.name else f"{self.name} ({self.seen_s:g} s)"
 
@@ -61,12 +65,17 @@ class Outcome:
             return False
         if self.name == "collision":
             return True
-        in_view = ep.get("contact_in_view_s", "missing")  # None: a fixed obstacle
-        if in_view is not None and (isinstance(in_view, bool)
-                                    or not isinstance(in_view, (int, float))
-                                    or not math.isfinite(in_view)):
+        if "contact_in_view_s" not in ep:
             return None
-        return (in_view is not None and in_view >= self.seen_s) == (self.name == "seen-collision")
+        in_view = ep["contact_in_view_s"]
+        if in_view is None:  # a fixed obstacle
+            seen = False
+        elif (isinstance(in_view, (int, float)) and not isinstance(in_view, bool)
+              and math.isfinite(in_view)):
+            seen = in_view >= self.seen_s
+        else:
+            return None
+        return seen == (self.name == "seen-collision")
 
 
 @dataclass(frozen=True)
@@ -252,7 +261,8 @@ def compare(evaluations: list[Evaluation]) -> dict[str, Any]:
                               if len(other.runs) == 1 else
                               _between_runs(reference, other, scenario))
                 for other in others}}
-    return {"outcome": str(reference.outcome), "reference": reference.label, "confidence": CONFIDENCE,
+    return {"outcome": str(reference.outcome), "reference": reference.label,
+            "confidence": CONFIDENCE,
             "sources": {ev.label: [[str(p) for p in run.sources] for run in ev.runs]
                         for ev in evaluations},
             "scenarios": scenarios}

@@ -157,6 +157,8 @@ def test_collisions_split_by_how_long_the_person_had_been_in_view(tmp_path):
                                              "contact_in_view_s": "2 s"}]}))
     with pytest.raises(UserError, match=r"episodes\[0\] \(a seed 0\) has no number in"):
         load_evaluation("bad", [[bad]], Outcome("unseen-collision"))
+    with pytest.raises(ValueError, match="outcome 'collisions'"):
+        Outcome("collisions")
 
 
 @pytest.mark.parametrize("content, message", [
