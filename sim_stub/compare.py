@@ -70,9 +70,8 @@ class Outcome:
         in_view = ep["contact_in_view_s"]
         if in_view is None:  # a fixed obstacle
             seen = False
-        elif (isinstance(in_view, (int, float)) and not isinstance(in_view, bool)
-              and math.isfinite(in_view)):
-            seen = in_view >= self.seen_s
+        elif (seconds := _finite(in_view)) is not None:
+            seen = seconds >= self.seen_s
         else:
             return None
         return seen == (self.name == "seen-collision")
@@ -191,8 +190,16 @@ def _check_same_episodes(reference: Evaluation, others: list[Evaluation]) -> Non
                                     " results on the same episodes")
 
 
-def _finite(x: float) -> float | None:
-    return float(x) if math.isfinite(x) else None
+def _finite(x: Any) -> float | None:
+    """x as a float, or None where it is no finite number (NaN, infinite, a bool, a string, or
+    an integer beyond the float range, as a lying JSON file can hold)."""
+    if isinstance(x, bool) or not isinstance(x, (int, float)):
+        return None
+    try:
+        x = float(x)
+    except OverflowError:
+        return None
+    return x if math.isfinite(x) else None
 
 
 def _rates(ev: Evaluation, scenario: str) -> dict[str, Any]:

@@ -153,10 +153,11 @@ def test_collisions_split_by_how_long_the_person_had_been_in_view(tmp_path):
                                         r" 'contact_in_view_s', which --outcome seen-collision"):
         load_evaluation("old", [[old]], Outcome("seen-collision"))
     bad = tmp_path / "bad.json"
-    bad.write_text(json.dumps({"episodes": [{"scenario": "a", "seed": 0, "status": "collision",
-                                             "contact_in_view_s": "2 s"}]}))
-    with pytest.raises(UserError, match=r"episodes\[0\] \(a seed 0\) has no number in"):
-        load_evaluation("bad", [[bad]], Outcome("unseen-collision"))
+    for lie in ("2 s", True, 10**400, float("nan"), float("inf")):
+        bad.write_text(json.dumps({"episodes": [{"scenario": "a", "seed": 0, "status": "collision",
+                                                 "contact_in_view_s": lie}]}))
+        with pytest.raises(UserError, match=r"episodes\[0\] \(a seed 0\) has no number in"):
+            load_evaluation("bad", [[bad]], Outcome("unseen-collision"))
     with pytest.raises(ValueError, match="outcome 'collisions'"):
         Outcome("collisions")
 
