@@ -18,7 +18,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
 import numpy as np
@@ -28,6 +28,7 @@ from runtime.odometry.ekf import OdometryEKF
 from runtime.odometry.pose_history import PoseHistory
 from runtime.perception.depth_guard import DepthGuard
 from runtime.perception.depth_points import FloorVerdict
+from runtime.perception.people_sighting import PeopleSighting, sighting_problem, sighting_tracks
 from runtime.perception.world_model import WorldModel, WorldState
 from runtime.safety.limits import apply_limits
 from runtime.types import STOP, DepthFrame, Odometry, Prepared, Twist, WheelIncrement
@@ -58,12 +59,15 @@ class Job(Protocol):
 class CycleInput:
     """What arrived since the previous cycle. `t`: the cycle's time (host monotonic seconds on
     the robot, simulated seconds in the simulator); `frames`: depth frames, oldest first;
-    `feedback_t`: when the latest base feedback arrived (None: never)."""
+    `feedback_t`: when the latest base feedback arrived (None: never); `people`: sightings of
+    the people all around (runtime.perception.people_sighting), oldest first; none on the
+    Spark today, ground truth in `safemove eval --surround-people`."""
 
     t: float
     increments: Sequence[WheelIncrement] = ()
     frames: Sequence[DepthFrame] = ()
     feedback_t: float | None = None
+    people: Sequence[PeopleSighting] = ()
 
 
 @dataclass(frozen=True)
@@ -121,6 +125,8 @@ class Pipeline:
         self.command = STOP
         self._hazard: str | None = None
         self._holding = False
+        self.people_dropped = 0  # unusable people sightings, the last one's reason below
+        self.people_dropped_why: str | None = None
 
     def admit(self, frames: Sequence[DepthFrame], now: float) -> None:
         """Depth frames through the guard (malformed ones are dropped and counted); the newest
@@ -149,6 +155,8 @@ class Pipeline:
             self.world = self._world_model.update(frame, self.odom,
                                                   self._poses.at(frame.t, self.odom))
             stage_s.update(self._world_model.stage_s)
+        if inp.people:
+            self._see_people(inp.people[-1])
         t1 = clock()
         hold = self._hold_reason(inp)
         if hold is not None and not self._holding:
@@ -179,6 +187,17 @@ class Pipeline:
     def step(self, inp: CycleInput) -> CycleResult:
         """One cycle with the job's own decision."""
         return self.finish(self.begin(inp))
+
+    def _see_people(self, sighting: PeopleSighting) -> None:
+        """The newest sighting's people replace the world's tracks; an unusable one is dropped
+        (counted, with its reason) and the camera's tracks stay."""
+        problem = sighting_problem(sighting)
+        if problem is not None or self.world is None:
+            self.people_dropped += 1
+            self.people_dropped_why = problem or "people sighting before any depth frame"
+            return
+        tracks = sighting_tracks(sighting, self._poses.at(sighting.t, self.odom), self.world.t)
+        self.world = replace(self.world, tracks=tracks)
 
     def check_floor(self) -> FloorVerdict | None:
         """The camera's floor check when one is due (the loop runs it in its slack), else None."""

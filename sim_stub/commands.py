@@ -348,6 +348,10 @@ def add_eval(p: argparse.ArgumentParser) -> None:
                         " renders it this wide (the D435's pixels, more columns); the scan's"
                         " bearing span and bins (of the same width) and the tracker's field of"
                         " view follow unless --set gives them")
+    p.add_argument("--surround-people", action="store_true",
+                   help="what if the robot saw every person around it: each depth frame comes"
+                        " with every person within the perception's range, all around and"
+                        " through occlusion, exactly (ground truth), as its tracks")
     p.add_argument("--record", type=Path, metavar="DIR",
                    help="a flight recording of every episode in DIR (<scenario>-seed<N>-….mcap:"
                         " open it in Foxglove, `safemove replay` or `safemove plot` it)")
@@ -430,12 +434,15 @@ def eval_run(args: argparse.Namespace) -> int:
     model = policy_model(args, "eval")
     if not 0 < args.fps <= 90:
         raise UserError(f"eval: --fps must be in (0, 90], got {args.fps}")
+    if args.surround_people and args.record is not None:
+        raise UserError("eval: --record cannot be used with --surround-people (a recording"
+                        " holds the camera's input only: its replay would not see the people)")
     plots = None if args.plots is None else _plots_dir(args.plots)
     hfov, overrides = camera_view(args)
     settings = EvalSettings(args.planner, args.config, overrides, model,
                             args.fps, args.noise, args.crowd, trajectories=plots is not None,
                             record=None if args.record is None else _record_dir(args.record),
-                            camera_hfov_deg=hfov)
+                            camera_hfov_deg=hfov, surround_people=args.surround_people)
 
     counts: dict[str, int] = {}
 

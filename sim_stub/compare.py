@@ -36,7 +36,7 @@ from runtime.errors import UserError
 from sim_stub.binomial import CONFIDENCE, mcnemar_exact_p, wilson_interval
 
 # the settings that must agree for two results' episodes to be the same episodes
-_CONDITIONS = ("fps", "noise", "crowd", "camera_hfov_deg")
+_CONDITIONS = ("fps", "noise", "crowd", "camera_hfov_deg", "surround_people")
 
 OUTCOMES = ("success", "collision", "seen-collision", "unseen-collision")
 
@@ -130,6 +130,8 @@ def _read(path: Path, outcome: Outcome) -> tuple[dict[str, Any], list[tuple[str,
     conditions = {k: result.get(k) for k in _CONDITIONS}
     if conditions["camera_hfov_deg"] is None:  # results from before --camera-hfov: the D435's
         conditions["camera_hfov_deg"] = D435_HFOV_DEG
+    if conditions["surround_people"] is None:  # from before --surround-people: the camera only
+        conditions["surround_people"] = False
     return conditions, rows
 
 

@@ -59,6 +59,7 @@ class EvalSettings:
     trajectories: bool = False  # keep each episode's Trajectory (for --plots)
     record: Path | None = None  # a flight recording of each episode in this directory
     camera_hfov_deg: float = D435_HFOV_DEG  # the simulated depth camera's horizontal view
+    surround_people: bool = False  # every person around as a sighting (sim_stub.surround_people)
 
 
 @dataclass(frozen=True)
@@ -124,7 +125,7 @@ def run_episode(scenario_name: str, seed: int, settings: EvalSettings) -> Episod
     loaded = load_config(settings.config_path, list(settings.overrides))
     episode = LockstepEpisode(scenario_name, seed, loaded.config, loaded.calibration,
                               settings.fps, settings.noise, settings.crowd,
-                              settings.camera_hfov_deg)
+                              settings.camera_hfov_deg, settings.surround_people)
     job = make_job(settings, episode.goal_odom, loaded)
     pipeline = Pipeline(episode.config, loaded.calibration, job)
     recorder = None
@@ -267,6 +268,7 @@ def evaluate(scenarios: list[str], episodes: int, seed: int, settings: EvalSetti
         "noise": settings.noise,
         "crowd": settings.crowd,
         "camera_hfov_deg": settings.camera_hfov_deg,
+        "surround_people": settings.surround_people,
         "scenarios": {name: summarise([r for r in results if r.scenario == name])
                       for name in scenarios},
         "episodes": [r.episode_dict() for r in results],

@@ -30,12 +30,14 @@ from drivers.spark.protocol import (
     wheel_speed_frame,
 )
 from runtime.config.settings import Calibration, Config
+from runtime.perception.people_sighting import PeopleSighting
 from runtime.pipeline import CycleInput
 from runtime.types import DepthFrame, Twist, WheelIncrement
 from sim_stub.base_sim import BasePhysics, SparkBaseSim
 from sim_stub.depth_render import DepthRenderer
 from sim_stub.scenario import load_scenario, with_crowd
 from sim_stub.sim_server import BASE_LINK_HEIGHT_M, scene_from
+from sim_stub.surround_people import surround_sighting
 from sim_stub.world import World, base_to_world, goal_in_odom
 
 
@@ -66,7 +68,8 @@ class LockstepEpisode:
     the true path so far."""
 
     def __init__(self, scenario: str, seed: int, cfg: Config, cal: Calibration, fps: float,
-                 noise: bool, crowd: str = "scenario", hfov_deg: float = D435_HFOV_DEG) -> None:
+                 noise: bool, crowd: str = "scenario", hfov_deg: float = D435_HFOV_DEG,
+                 surround_people: bool = False) -> None:
         self.world = World(with_crowd(load_scenario(scenario), crowd), seed=seed,
                            limits=cfg.limits)
         w = self.world.robot
@@ -88,6 +91,9 @@ class LockstepEpisode:
         self._next_tick, self._next_cycle, self._next_frame = BASE_TICK_S, self._period, 0.0
         self._increments: list[WheelIncrement] = []
         self._frames: list[DepthFrame] = []
+        # with each depth frame, every person around as a sighting (sim_stub.surround_people)
+        self._surround_range_m = cfg.perception.range_max_m if surround_people else None
+        self._people: list[PeopleSighting] = []
         self._feedback_t: float | None = None
         self.frames = self.cycles = 0
         self.path_length_m = 0.0
@@ -119,9 +125,10 @@ class LockstepEpisode:
                 self._next_cycle += self._period
                 self.cycles += 1
                 inp = CycleInput(self.t, tuple(self._increments), tuple(self._frames),
-                                 self._feedback_t)
+                                 self._feedback_t, tuple(self._people))
                 self._increments.clear()
                 self._frames.clear()
+                self._people.clear()
                 return inp
         return None
 
@@ -160,5 +167,7 @@ class LockstepEpisode:
         depth = self._renderer.render(tuple(snap.robot_pose), scene_from(self.world, snap),
                                       noise=self._noise)
         self._frames.append(DepthFrame(depth, self.t, self.frames, self._renderer.intrinsics))
+        if self._surround_range_m is not None:
+            self._people.append(surround_sighting(snap, self._surround_range_m))
         self.frames += 1
         self.sim_s["render"] += time.perf_counter() - t0
