@@ -136,3 +136,13 @@ def test_camera_hfov_widens_the_scan_unless_told_and_a_bad_view_is_one_line(safe
     assert bad.wait(timeout=30) == 2
     assert bad.stderr.strip().splitlines() == [
         "safemove: error: eval: --camera-hfov must be in [10, 160] deg, got 200"]
+
+
+def test_surround_people_is_not_recorded_for_a_replay_that_could_not_see_them(safemove, tmp_path):
+    bad = safemove(["eval", "--surround-people", "--record", str(tmp_path / "rec"),
+                    "--episodes", "1"])
+    assert bad.wait(timeout=30) == 2
+    assert bad.stderr.strip().splitlines() == [
+        ("safemove: error: eval: --record cannot be used with --surround-people (a recording"
+         " holds the camera's input only: its replay would not see the people)")]
+    assert not (tmp_path / "rec").exists()
