@@ -20,7 +20,7 @@ from sim_stub.emulator_process import EmulatorProcess
 # Deterministic lock-stepped simulation: episodes of sim_stub.lockstep (through sim_stub.evaluate
 # or sim_stub.train.env, in this process or in a `safemove eval` / `safemove train` child) on simulated
 # time, no wall clock and no real-time peer process. The HIL files are tests/test_hil_*.py.
-SIM_FILES = frozenset({"test_evaluate.py", "test_train.py"})
+SIM_FILES = frozenset({"test_evaluate.py", "test_surround_people.py", "test_train.py"})
 
 
 @pytest.hookimpl(tryfirst=True)  # before `-m` deselects by marker
