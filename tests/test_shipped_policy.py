@@ -242,6 +242,22 @@ def test_ship_refuses_a_foreign_spec_or_evaluation(models, tmp_path, capsys, spe
     assert shipped.shipped_variants() == []
 
 
+def test_ship_refuses_a_run_trained_seeing_every_person_around(models, tmp_path, capsys):
+    run = _run_dir(tmp_path, "safemove")
+    summary = json.loads((run / "summary.json").read_text())
+    summary["settings"] = {"surround_people": True}
+    (run / "summary.json").write_text(json.dumps(summary))
+    result = tmp_path / "eval.json"
+    result.write_text(json.dumps({"planner": "safemove", "model": str(run / "actor.onnx"),
+                                  "crowd": "scenario", "noise": True, "fps": 15.0,
+                                  "scenarios": {}}))
+    assert main(["ship", str(run), "--eval", str(result)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [(f"safemove: error: {run / 'summary.json'}: trained with --surround-people,"
+                    " seeing every person around exactly; the robot has no such sensor")]
+    assert shipped.shipped_variants() == []
+
+
 def test_a_ship_that_fails_leaves_nothing_in_the_package(models, tmp_path, capsys):
     run = _run_dir(tmp_path, "safemove")
     (run / "actor.onnx").write_bytes(b"not a model")

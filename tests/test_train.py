@@ -58,6 +58,29 @@ def test_env_passes_the_gymnasium_checker_and_repeats_from_its_seed(tmp_path):
     assert a.observation_space.contains(ra[0])
 
 
+def test_env_with_surround_people_tracks_the_person_behind_the_robot(tmp_path):
+    crowd = "{count: 1, reactive: false, speed_range: [0.5, 0.5], radius: 0.3}"
+    room = _room(tmp_path, "behind", 2.5, crowd)
+    for surround in (False, True):
+        env = _env(room, surround_people=surround)
+        env.reset(seed=0)
+        world = env.world
+        # 1.5 m behind the robot, walking away from it: outside the camera's view
+        world.crowd.set_agent(0, (-1.5, 0.0), (-2.9, 0.0))
+        world.crowd.goal_sampler = None
+        for _ in range(20):  # a second: the person is up to speed
+            env.step(np.array([-1.0, 0.0], dtype=np.float32))  # parked
+        tracks = env._pipeline.world.tracks
+        if not surround:
+            assert tracks == []
+            continue
+        (tr,) = tracks
+        assert tr.id == 0 and tr.confirmed and not tr.stationary
+        # odom starts where the robot does, facing +x: the person is behind, walking away
+        assert tr.position[0] < -1.5 and abs(tr.position[1]) < 0.1
+        assert tr.velocity == pytest.approx([-0.5, 0.0], abs=0.05)
+
+
 def test_driving_to_the_goal_earns_progress_and_the_success_bonus(tmp_path):
     env = _env(_room(tmp_path, "room", 1.0))
     cfg = RewardConfig()

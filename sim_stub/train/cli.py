@@ -56,6 +56,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--crowd", choices=(*CROWD_MODES, "mixed"), default="scenario",
                    help="whether the people see the robot (default: as the scenario says;"
                         " mixed: each episode draws reactive or oblivious)")
+    p.add_argument("--surround-people", action="store_true",
+                   help="what if the robot saw every person around it: train with the people"
+                        " all around as tracks from ground truth (as eval --surround-people);"
+                        " such a run cannot ship, no robot has that sensor")
     p.add_argument("--steps", type=int_at_least(1), default=200_000,
                    help="environment steps (control cycles) to train (default 200000)")
     p.add_argument("--seed", type=int, default=0,
@@ -138,7 +142,8 @@ def run_train(args: argparse.Namespace) -> dict[str, Any]:
     commit = source_commit()  # the code that runs: taken before the hours of training
     n = args.envs
     env = make_vec_env(args.scenarios, spec, loaded, n, args.seed, fps=args.fps,
-                       noise=args.noise, crowd=args.crowd, reward=RewardConfig(kind=args.reward),
+                       noise=args.noise, crowd=args.crowd, surround_people=args.surround_people,
+                       reward=RewardConfig(kind=args.reward),
                        monitor_path=out / "monitor.csv")
     model = make_td3(env, args)
     t0 = time.monotonic()

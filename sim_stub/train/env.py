@@ -45,9 +45,10 @@ class SafeMoveEnv(gym.Env):
 
     def __init__(self, scenarios: list[str], spec: ObsSpec, loaded: LoadedConfig,
                  reward: RewardConfig | None = None, fps: float = 15.0, noise: bool = True,
-                 crowd: str = "scenario") -> None:
+                 crowd: str = "scenario", surround_people: bool = False) -> None:
         """crowd: as the scenario says, reactive, oblivious, or "mixed" (each episode draws
-        reactive or oblivious)."""
+        reactive or oblivious); surround_people: the pipeline also sees every person around,
+        exactly (sim_stub.surround_people: a what-if, no robot has that sensor)."""
         if not scenarios:
             raise ValueError("SafeMoveEnv needs at least one scenario")
         self.scenarios = list(scenarios)
@@ -55,6 +56,7 @@ class SafeMoveEnv(gym.Env):
         self.loaded = loaded
         self.reward_config = reward if reward is not None else RewardConfig()
         self.fps, self.noise, self.crowd = fps, noise, crowd
+        self.surround_people = surround_people
         lo, hi = spec.bounds()
         self.observation_space = gym.spaces.Box(lo, hi, dtype=F32)
         a = spec.action
@@ -77,7 +79,8 @@ class SafeMoveEnv(gym.Env):
         if crowd == "mixed":  # domain randomisation: people who see the robot, or do not
             crowd = ("reactive", "oblivious")[int(rng.integers(2))]
         self._episode = LockstepEpisode(scenario, episode_seed, self.loaded.config,
-                                        self.loaded.calibration, self.fps, self.noise, crowd)
+                                        self.loaded.calibration, self.fps, self.noise, crowd,
+                                        surround_people=self.surround_people)
         self._job = SafeMoveJob(self._episode.goal_odom, self.loaded.config, None, None,
                                 spec=self.obs_spec)
         self._pipeline = Pipeline(self._episode.config, self.loaded.calibration, self._job)

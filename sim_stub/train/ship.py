@@ -47,7 +47,8 @@ def evaluation_record(result: dict[str, Any], source: Path) -> dict[str, Any]:
     except (KeyError, TypeError, AttributeError) as exc:
         raise UserError(f"{source}: not a `safemove eval --json` result (missing {exc})") from None
     # what evaluated it, where the result says (results before these fields have none)
-    record.update({k: result[k] for k in ("commit", "camera_hfov_deg") if k in result})
+    record.update({k: result[k] for k in ("commit", "camera_hfov_deg", "surround_people")
+                   if k in result})
     return record
 
 
@@ -72,6 +73,10 @@ def ship(run_dir: Path, evaluations: list[Path]) -> Path:
     summary = _read_json(run_dir / "summary.json")
     if not isinstance(summary, dict):
         raise UserError(f"{run_dir / 'summary.json'}: not a `safemove train` summary")
+    settings = summary.get("settings")
+    if isinstance(settings, dict) and settings.get("surround_people"):
+        raise UserError(f"{run_dir / 'summary.json'}: trained with --surround-people, seeing"
+                        " every person around exactly; the robot has no such sensor")
     spec = _read_json(run_dir / "spec.json")
     variant = spec.get("name") if isinstance(spec, dict) else None
     if variant not in shipped.VARIANTS:

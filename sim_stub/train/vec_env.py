@@ -33,7 +33,7 @@ PRELOAD = ["__main__", "stable_baselines3.common.vec_env.subproc_vec_env", __nam
 
 
 def make_vec_env(scenarios: list[str], spec: ObsSpec, loaded: LoadedConfig, n_envs: int,
-                 seed: int, *, fps: float, noise: bool, crowd: str,
+                 seed: int, *, fps: float, noise: bool, crowd: str, surround_people: bool = False,
                  reward: RewardConfig | None = None, monitor_path: Path | None = None
                  ) -> VecEnv:
     """`n_envs` envs in worker processes (one: in this process, nothing to overlap), env i
@@ -43,7 +43,7 @@ def make_vec_env(scenarios: list[str], spec: ObsSpec, loaded: LoadedConfig, n_en
         raise ValueError(f"make_vec_env: n_envs must be at least 1, got {n_envs}")
     # built in the worker from plain, picklable arguments
     factory = functools.partial(SafeMoveEnv, list(scenarios), spec, loaded, reward, fps=fps,
-                                noise=noise, crowd=crowd)
+                                noise=noise, crowd=crowd, surround_people=surround_people)
     if n_envs == 1:
         venv: VecEnv = DummyVecEnv([factory])
     else:
