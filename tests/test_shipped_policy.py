@@ -172,6 +172,14 @@ def _run_dir(tmp_path: Path, spec_name: str) -> Path:
     return run
 
 
+def _evaluation(tmp_path: Path, model: Path | str) -> Path:
+    """A `safemove eval --planner safemove --json` result of `model` with no episodes."""
+    result = tmp_path / "eval.json"
+    result.write_text(json.dumps({"planner": "safemove", "model": str(model), "crowd": "scenario",
+                                  "noise": True, "fps": 15.0, "scenarios": {}}))
+    return result
+
+
 def test_ship_installs_the_run_with_its_records(models, tiny_room, tmp_path, capsys):
     run = _run_dir(tmp_path, "safemove")
     assert main(["eval", "--planner", "safemove", "--model", str(run / "actor.onnx"),
@@ -197,11 +205,7 @@ def test_ship_takes_an_evaluation_of_the_run_before_it_moved(models, tmp_path, c
     summary = json.loads((run / "summary.json").read_text())
     summary["actor"] = "/tmp/train/safemove/actor.onnx"
     (run / "summary.json").write_text(json.dumps(summary))
-    result = tmp_path / "eval.json"
-    result.write_text(json.dumps({"planner": "safemove", "model": summary["actor"],
-                                  "crowd": "scenario", "noise": True, "fps": 15.0,
-                                  "scenarios": {}}))
-    assert main(["ship", str(run), "--eval", str(result)]) == 0
+    assert main(["ship", str(run), "--eval", str(_evaluation(tmp_path, summary["actor"]))]) == 0
     assert shipped.shipped_variants() == ["safemove"]
     assert "actor" not in Policy(models / "safemove.onnx", PolicyConfig()).training
 
@@ -216,11 +220,7 @@ def test_ship_takes_an_evaluation_of_an_installed_copy_of_the_run(models, tmp_pa
     other = tmp_path / "other.onnx"
     write_random_actor(other, seed=1)
     for model, code in ((installed, 0), (other, 2)):
-        result = tmp_path / "eval.json"
-        result.write_text(json.dumps({"planner": "safemove", "model": str(model),
-                                      "crowd": "scenario", "noise": True, "fps": 15.0,
-                                      "scenarios": {}}))
-        assert main(["ship", str(run), "--eval", str(result)]) == code
+        assert main(["ship", str(run), "--eval", str(_evaluation(tmp_path, model))]) == code
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"evaluates {other}, not this run's" in err[0]
     assert Policy(installed, PolicyConfig()).training["steps"] == 10  # shipped from the run
@@ -247,11 +247,7 @@ def test_ship_refuses_a_run_trained_seeing_every_person_around(models, tmp_path,
     summary = json.loads((run / "summary.json").read_text())
     summary["settings"] = {"surround_people": True}
     (run / "summary.json").write_text(json.dumps(summary))
-    result = tmp_path / "eval.json"
-    result.write_text(json.dumps({"planner": "safemove", "model": str(run / "actor.onnx"),
-                                  "crowd": "scenario", "noise": True, "fps": 15.0,
-                                  "scenarios": {}}))
-    assert main(["ship", str(run), "--eval", str(result)]) == 2
+    assert main(["ship", str(run), "--eval", str(_evaluation(tmp_path, run / "actor.onnx"))]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [(f"safemove: error: {run / 'summary.json'}: trained with --surround-people,"
                     " seeing every person around exactly; the robot has no such sensor")]
@@ -261,11 +257,7 @@ def test_ship_refuses_a_run_trained_seeing_every_person_around(models, tmp_path,
 def test_a_ship_that_fails_leaves_nothing_in_the_package(models, tmp_path, capsys):
     run = _run_dir(tmp_path, "safemove")
     (run / "actor.onnx").write_bytes(b"not a model")
-    result = tmp_path / "eval.json"
-    result.write_text(json.dumps({"planner": "safemove", "model": str(run / "actor.onnx"),
-                                  "crowd": "scenario", "noise": True, "fps": 15.0,
-                                  "scenarios": {}}))
-    assert main(["ship", str(run), "--eval", str(result)]) == 2
+    assert main(["ship", str(run), "--eval", str(_evaluation(tmp_path, run / "actor.onnx"))]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "not an ONNX model" in err[0]
     assert list(models.iterdir()) == []
