@@ -1,5 +1,5 @@
-"""One control cycle, composed once: odometry → depth admission → world model → health → the
-planner job → NaN guard → limits.
+"""One control cycle, composed once: odometry → depth admission → world model (its tracks
+replaced by a people sighting where one came) → health → the planner job → NaN guard → limits.
 
 The live loop, the lock-stepped simulator, the training environment, the benchmarks and replay
 all call `Pipeline.step` (or its two halves, `begin` and `finish`, where an outside agent makes
