@@ -196,7 +196,8 @@ class Pipeline:
             self.people_dropped += 1
             self.people_dropped_why = problem or "people sighting before any depth frame"
             return
-        tracks = sighting_tracks(sighting, self._poses.at(sighting.t, self.odom), self.world.t)
+        tracks = sighting_tracks(sighting, self._poses.at(sighting.t, self.odom), self.world.t,
+                                 self._cfg.tracking.stationary_speed_m_s)
         self.world = replace(self.world, tracks=tracks)
 
     def check_floor(self) -> FloorVerdict | None:

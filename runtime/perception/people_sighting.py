@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from runtime.geometry import into_frame
 from runtime.perception.tracking import Track
 from runtime.types import Odometry
 
@@ -22,8 +23,6 @@ from runtime.types import Odometry
 # a metre per second; the planner's discs grow with these as with the camera's tracks.
 POSITION_SIGMA_M = 0.03
 VELOCITY_SIGMA_M_S = 0.1
-# Slower than this a person is standing: predicted still, as the tracker's stationarity test has it
-STANDING_M_S = 0.05
 
 
 @dataclass(frozen=True)
@@ -52,15 +51,17 @@ def sighting_problem(sighting: PeopleSighting) -> str | None:
     return None
 
 
-def sighting_tracks(sighting: PeopleSighting, seen_from: Odometry, at_t: float) -> list[Track]:
+def sighting_tracks(sighting: PeopleSighting, seen_from: Odometry, at_t: float,
+                    standing_m_s: float) -> list[Track]:
     """The sighting's people as confirmed tracks in odom at time `at_t` (the world state's
     stamp, from which the planner predicts), constant velocity from the sighting's stamp;
-    `seen_from`: the robot's pose at that stamp."""
-    c, s = np.cos(seen_from.theta), np.sin(seen_from.theta)
-    rot = np.array([[c, -s], [s, c]])
-    vel = sighting.velocity @ rot.T
-    pos = sighting.position @ rot.T + np.array([seen_from.x, seen_from.y])
-    standing = np.hypot(vel[:, 0], vel[:, 1]) < STANDING_M_S
+    `seen_from`: the robot's pose at that stamp. Slower than `standing_m_s` (the tracker's
+    `stationary_speed_m_s`) a person is standing and predicted still, as the camera's tracks."""
+    back = -seen_from.theta  # base_link → odom: the inverse rotation of `into_frame`'s
+    vel = np.stack(into_frame(sighting.velocity[:, 0], sighting.velocity[:, 1], back), axis=-1)
+    px, py = into_frame(sighting.position[:, 0], sighting.position[:, 1], back)
+    pos = np.stack([px + seen_from.x, py + seen_from.y], axis=-1)
+    standing = np.hypot(vel[:, 0], vel[:, 1]) < standing_m_s
     vel[standing] = 0.0
     pos = pos + vel * (at_t - sighting.t)
     cov = np.diag([POSITION_SIGMA_M**2] * 2 + [VELOCITY_SIGMA_M_S**2] * 2)
