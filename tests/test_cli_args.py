@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from runtime.cli.main import main, parse_args
+from runtime.cli.main import COMMANDS, main, parse_args
 
 
 @pytest.mark.parametrize(
@@ -44,3 +44,16 @@ def test_demo_refuses_an_unknown_scenario_before_starting_anything(capsys):
     assert main(["demo", "--scenario", "no_such_room"]) == 2
     err = capsys.readouterr().err
     assert "no_such_room" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("command", [None, *COMMANDS])
+def test_every_help_page_prints(command, capsys):
+    """`safemove --help` and each command's `--help` print their page and exit 0 (a bare `%` in a
+    help string made argparse raise instead)."""
+    with pytest.raises(SystemExit) as exc:
+        main(["--help"] if command is None else [command, "--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    assert out.startswith("usage: safemove")
+    if command is None:
+        assert all(name in out for name in COMMANDS)

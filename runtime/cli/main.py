@@ -62,7 +62,7 @@ COMMANDS: dict[str, tuple[str, bool, str]] = {
     "eval": ("sim_stub.commands:add_eval", False,
               "seeded episodes per scenario, lock-stepped, scored as in the paper's table"),
     "compare": ("sim_stub.commands:add_compare", False,
-                 ("eval results on the same episodes: success with 95 % intervals, each against"
+                 ("eval results on the same episodes: success with 95 %% intervals, each against"
                   " the first (paired by episode, or between training runs)")),
     "sim": ("sim_stub.commands:add_sim", True,
              "the simulated world + base on a pty + depth on a socket (see --help)"),
