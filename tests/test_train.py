@@ -3,6 +3,7 @@ end (train → td3.zip → exported actor.onnx → `safemove eval` runs it)."""
 
 from __future__ import annotations
 
+import argparse
 import csv
 import json
 import zipfile
@@ -205,3 +206,22 @@ def test_train_refuses_an_unknown_scenario(tmp_path, safemove):
     run = safemove(["train", "-o", str(tmp_path / "run"), "--scenarios", "no_such_room"])
     assert run.wait(timeout=120) == 2
     assert "no_such_room" in run.stderr and "Traceback" not in run.stderr
+
+
+def test_shield_penalty_reaches_the_project_reward():
+    from sim_stub.train.cli import add_arguments, reward_config
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    args = parser.parse_args(["-o", "run"])
+    assert reward_config(args) == RewardConfig()
+    args = parser.parse_args(["-o", "run", "--shield-penalty", "0.5"])
+    assert reward_config(args) == RewardConfig(shield_change=0.5)
+
+
+def test_train_refuses_a_shield_penalty_with_the_papers_reward(tmp_path, safemove):
+    run = safemove(["train", "-o", str(tmp_path / "run"), "--reward", "paper",
+                    "--shield-penalty", "0.5"])
+    assert run.wait(timeout=120) == 2
+    assert "--shield-penalty: the paper reward has no shield term" in run.stderr
+    assert "Traceback" not in run.stderr and not (tmp_path / "run").exists()

@@ -90,6 +90,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="project: progress, time, success, collision and shield terms; paper:"
                         " the paper's R_g + R_b + R_yaw (sim_stub/train/reward.py; default"
                         " project)")
+    p.add_argument("--shield-penalty", type=non_negative_float, default=None, metavar="W",
+                   help="project reward: the penalty for each cycle the shield changed the"
+                        f" actor's command (default {RewardConfig().shield_change})")
     p.add_argument("--replay", choices=REPLAYS, default="uniform",
                    help="uniform: SB3's replay buffer; rmax: the paper's reward-ranked replay,"
                         " half of each batch from the top-rewarded tenth (default uniform)")
@@ -105,6 +108,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="bc-td3: behaviour-cloning passes over the demonstrations (default 30)")
     p.add_argument("--critic-warmup", type=int_at_least(0), default=5_000,
                    help="bc-td3: critic-only gradient steps before TD3 (default 5000)")
+
+
+def reward_config(args: argparse.Namespace) -> RewardConfig:
+    """The reward the command line asks for; a shield penalty with the paper's reward, which has
+    no shield term, is refused rather than dropped."""
+    if args.shield_penalty is None:
+        return RewardConfig(kind=args.reward)
+    if args.reward != "project":
+        raise UserError(f"--shield-penalty: the {args.reward} reward has no shield term"
+                        " (only --reward project)")
+    return RewardConfig(kind=args.reward, shield_change=args.shield_penalty)
 
 
 def run_train(args: argparse.Namespace) -> dict[str, Any]:
@@ -124,6 +138,7 @@ def run_train(args: argparse.Namespace) -> dict[str, Any]:
     from sim_stub.train.vec_env import make_vec_env
 
     spec = load_spec(args.spec)
+    reward = reward_config(args)
     loaded = load_config(args.config, args.overrides)
     for name in args.scenarios:
         load_scenario(name)  # a bad name fails here, once, with its message
@@ -143,7 +158,7 @@ def run_train(args: argparse.Namespace) -> dict[str, Any]:
     n = args.envs
     env = make_vec_env(args.scenarios, spec, loaded, n, args.seed, fps=args.fps,
                        noise=args.noise, crowd=args.crowd, surround_people=args.surround_people,
-                       reward=RewardConfig(kind=args.reward),
+                       reward=reward,
                        monitor_path=out / "monitor.csv")
     model = make_td3(env, args)
     t0 = time.monotonic()
