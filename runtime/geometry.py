@@ -49,6 +49,13 @@ def into_frame(dx: A, dy: A, theta: float) -> tuple[A, A]:
     c, s = math.cos(theta), math.sin(theta)
     return c * dx + s * dy, -s * dx + c * dy
 
+
+def from_frame(x: float, y: float, theta: float, dx: A, dy: A) -> tuple[A, A]:
+    """A point (dx, dy) given in a child frame whose pose in its parent is (x, y, theta),
+    expressed in the parent (e.g. base_link → odom at the robot's pose): `into_frame` undone."""
+    c, s = math.cos(theta), math.sin(theta)
+    return x + c * dx - s * dy, y + s * dx + c * dy
+
 # camera_link ← optical: optical z is link x, optical x is −link y, optical y is −link z
 R_LINK_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 

@@ -14,7 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from runtime.config.settings import LimitsConfig
-from runtime.geometry import wrap_angle
+from runtime.geometry import from_frame, into_frame, wrap_angle
 from runtime.jobs.drive import STILL_FOR_S, DriveJob, HoldJob, Segment
 from runtime.odometry.dead_reckoning import advance
 from runtime.safety.limits import apply_limits
@@ -218,6 +218,14 @@ def test_wrap_angle_property(a: float) -> None:
 
 def test_wrap_angle_just_below_minus_pi() -> None:
     assert wrap_angle(math.nextafter(-math.pi, -4.0)) < math.pi
+
+
+def test_from_frame_places_base_link_points_in_odom_and_undoes_into_frame() -> None:
+    # the robot at (1, 2) facing +y: 1 m ahead is (1, 3), 1 m to its left is (0, 2)
+    assert from_frame(1.0, 2.0, math.pi / 2, 1.0, 0.0) == pytest.approx((1.0, 3.0))
+    assert from_frame(1.0, 2.0, math.pi / 2, 0.0, 1.0) == pytest.approx((0.0, 2.0))
+    x, y = from_frame(-3.0, 0.5, 2.4, 0.7, -1.3)
+    assert into_frame(x + 3.0, y - 0.5, 2.4) == pytest.approx((0.7, -1.3))
 
 
 # --- DriveJob ------------------------------------------------------------------------------------

@@ -27,6 +27,7 @@ import numpy as np
 
 from runtime.control.config import ControlConfig
 from runtime.control.protocol import Request, Waypoint, reply
+from runtime.geometry import from_frame
 from runtime.perception.world_model import WorldState
 from runtime.planning.planning_step import PlanningStep
 from runtime.types import STOP, DecisionTrace, Odometry, Prepared, Twist
@@ -170,8 +171,7 @@ class MissionJob:
     def _resolve(self, w: Waypoint, frame: str, odom: Odometry) -> Target:
         x, y = w.x, w.y
         if frame == "relative":  # base_link at acceptance: x forward, y left
-            c, s = math.cos(odom.theta), math.sin(odom.theta)
-            x, y = odom.x + c * w.x - s * w.y, odom.y + s * w.x + c * w.y
+            x, y = from_frame(odom.x, odom.y, odom.theta, w.x, w.y)
         return Target(x, y, w.tolerance or self._cfg.goal_tolerance_m, w.max_speed)
 
     def _begin_waypoint(self, index: int) -> None:

@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from runtime.config.schema import setting
-from runtime.geometry import bin_index, bin_layout, into_frame
+from runtime.geometry import bin_index, bin_layout, from_frame, into_frame
 from runtime.perception.depth_points import PerceptionOutput, ViewCone
 
 F32 = np.float32
@@ -139,10 +139,9 @@ class ObstacleMemory:
         cfg = self.config
         self.t_last = t
         px, py, th = pose_odom
-        c, s = math.cos(th), math.sin(th)
         n = self._n
         if n:
-            visible, r, k = self._visible(px, py, c, s, unknown, bin_angles, view)
+            visible, r, k = self._visible(px, py, th, unknown, bin_angles, view)
             self._held[:n] = ~visible & (r <= cfg.hold_out_of_view_m) & ~self._moving[:n]
             alive = ((t - self._t[:n]) <= cfg.decay_s) | self._held[:n]
             self.decayed_total += int(n - np.count_nonzero(alive))
@@ -154,9 +153,9 @@ class ObstacleMemory:
         pts = np.asarray(points_base)
         self.frame_points = np.empty((0, 2))
         if len(pts):
-            self._insert(pts, heights, px, py, c, s, t)
+            self._insert(pts, heights, px, py, th, t)
 
-    def _visible(self, px, py, c, s, unknown, bin_angles, view
+    def _visible(self, px, py, th, unknown, bin_angles, view
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Which remembered cells the camera sees now (inside the bearing span, in a bin that
         is not unknown, within range_max and, with a ViewCone, beyond its minimum range with
@@ -164,10 +163,7 @@ class ObstacleMemory:
         range from base_link and their bearing bin (0 for those outside the span)."""
         cfg = self.config
         n = self._n
-        dx = self._x[:n] - px
-        dy = self._y[:n] - py
-        bx = c * dx + s * dy
-        by = -s * dx + c * dy
+        bx, by = into_frame(self._x[:n] - px, self._y[:n] - py, th)
         r = np.hypot(bx, by)
         # bearing from the camera, as perception bins its rays: beside the robot the bearing
         # from base_link can fall in a bin whose rays pass the cell by
@@ -199,10 +195,9 @@ class ObstacleMemory:
             a[:m] = a[: self._n][keep]
         self._n = m
 
-    def _insert(self, pts, heights, px, py, c, s, t) -> None:
+    def _insert(self, pts, heights, px, py, th, t) -> None:
         cfg = self.config
-        ox = px + c * pts[:, 0].astype(np.float64) - s * pts[:, 1]
-        oy = py + s * pts[:, 0].astype(np.float64) + c * pts[:, 1]
+        ox, oy = from_frame(px, py, th, pts[:, 0].astype(np.float64), pts[:, 1])
         ix = np.floor(ox / cfg.cell_m).astype(np.int64)
         iy = np.floor(oy / cfg.cell_m).astype(np.int64)
         hz = None if heights is None else np.asarray(heights, dtype=F32)

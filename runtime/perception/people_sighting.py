@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from runtime.geometry import into_frame
+from runtime.geometry import from_frame
 from runtime.perception.tracking import Track
 from runtime.types import Odometry
 
@@ -57,10 +57,11 @@ def sighting_tracks(sighting: PeopleSighting, seen_from: Odometry, at_t: float,
     stamp, from which the planner predicts), constant velocity from the sighting's stamp;
     `seen_from`: the robot's pose at that stamp. Slower than `standing_m_s` (the tracker's
     `stationary_speed_m_s`) a person is standing and predicted still, as the camera's tracks."""
-    back = -seen_from.theta  # base_link → odom: the inverse rotation of `into_frame`'s
-    vel = np.stack(into_frame(sighting.velocity[:, 0], sighting.velocity[:, 1], back), axis=-1)
-    px, py = into_frame(sighting.position[:, 0], sighting.position[:, 1], back)
-    pos = np.stack([px + seen_from.x, py + seen_from.y], axis=-1)
+    x, y, th = seen_from.x, seen_from.y, seen_from.theta
+    vel = np.stack(from_frame(0.0, 0.0, th, sighting.velocity[:, 0], sighting.velocity[:, 1]),
+                   axis=-1)
+    pos = np.stack(from_frame(x, y, th, sighting.position[:, 0], sighting.position[:, 1]),
+                   axis=-1)
     standing = np.hypot(vel[:, 0], vel[:, 1]) < standing_m_s
     vel[standing] = 0.0
     pos = pos + vel * (at_t - sighting.t)

@@ -38,6 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from runtime.config.schema import setting
+from runtime.geometry import from_frame
 from runtime.perception.world_model import WorldState
 from runtime.types import Odometry
 
@@ -142,10 +143,8 @@ class StallRecovery:
 def obstacles_odom(odom: Odometry, world: WorldState) -> tuple[np.ndarray, np.ndarray]:
     """Remembered points and confirmed tracks in the odom frame: centres (K, 2), radii (K,)
     (0 for points)."""
-    c, s = np.cos(odom.theta), np.sin(odom.theta)
     pts = np.asarray(world.points_base, dtype=float).reshape(-1, 2)
-    centres = [np.stack([odom.x + c * pts[:, 0] - s * pts[:, 1],
-                         odom.y + s * pts[:, 0] + c * pts[:, 1]], axis=1)]
+    centres = [np.stack(from_frame(odom.x, odom.y, odom.theta, pts[:, 0], pts[:, 1]), axis=1)]
     radii = [np.zeros(len(pts))]
     confirmed = [t for t in world.tracks if t.confirmed]
     if confirmed:
