@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import json
 import zipfile
 from pathlib import Path
@@ -193,6 +194,7 @@ def test_the_bc_td3_recipe_clones_dwa_before_td3(tmp_path, safemove):
         assert (out / name).is_file(), name
     record = json.loads((out / "summary.json").read_text())  # what a shipped model carries
     assert record["settings"]["demo_steps"] == 300 and record["settings"]["seed"] == 0
+    assert record["reward"] == dataclasses.asdict(RewardConfig())  # the weights, defaults too
     assert "commit" in record and record["total_env_steps"] == 320
 
 

@@ -27,6 +27,7 @@ import math
 import os
 import time
 from collections import Counter
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -191,7 +192,8 @@ def run_train(args: argparse.Namespace) -> dict[str, Any]:
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()
                 if k != "func"}
     (out / "summary.json").write_text(
-        json.dumps({**summary, "settings": settings, "commit": commit}, indent=1),
+        json.dumps({**summary, "settings": settings, "reward": asdict(reward), "commit": commit},
+                   indent=1),
         encoding="utf-8")
     return summary
 
