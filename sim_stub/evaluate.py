@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 from array import array
+from collections import Counter
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field, fields, replace
@@ -96,6 +97,9 @@ class EpisodeResult:
     # the stall recovery (runtime.planning.stall_recovery): escapes, and takeovers of a policy
     stall_escapes: int = 0
     dwa_takeovers: int = 0
+    # shield_interventions by kind (replaced, turned, braked): a policy the shield keeps turning in
+    # place is asking for what it may not have, one it replaces is only off the certified set
+    shield_kinds: dict[str, int] = field(default_factory=dict)
     # with EvalSettings.trajectories only; never in the JSON result (`episode_dict`)
     trajectory: Trajectory | None = field(default=None, repr=False, compare=False)
 
@@ -178,6 +182,7 @@ def run_episode(scenario_name: str, seed: int, settings: EvalSettings) -> Episod
                            else None),
         stall_escapes=int(summary.get("stall_escapes", 0)),
         dwa_takeovers=int(summary.get("dwa_takeovers", 0)),
+        shield_kinds={k: int(n) for k, n in summary.get("shield_interventions", {}).items()},
         trajectory=trajectory)
 
 
@@ -223,6 +228,8 @@ def summarise(results: list[EpisodeResult]) -> dict[str, Any]:
         "avg_time_s": float(np.mean([r.time_s for r in ok])) if ok else None,
         "shield_interventions": sum(r.shield_interventions for r in results),
         "shield_interventions_per_episode": sum(r.shield_interventions for r in results) / n,
+        "shield_interventions_by_kind": dict(sum((Counter(r.shield_kinds) for r in results),
+                                                 Counter())),
         "min_separation_m": float(min(r.min_separation_m for r in results)),
         "stall_escapes": sum(r.stall_escapes for r in results),
         "dwa_takeovers": sum(r.dwa_takeovers for r in results),

@@ -38,6 +38,8 @@ def test_dwa_reaches_the_goal_around_a_box_and_episodes_repeat_exactly(short_roo
     assert a.min_separation_m == math.inf  # nobody in the room
     assert a.contact_in_view_s is None  # nobody to have seen
     assert a.cycles >= a.time_s * 20 - 1  # one planning cycle per 50 ms of simulated time
+    assert set(a.shield_kinds) <= {"replaced", "turned", "braked"}
+    assert sum(a.shield_kinds.values()) == a.shield_interventions
     # no wall clock in an episode: the same seed gives the same episode
     b = run_episode(short_room, 5, SETTINGS)
     assert (b.status, b.time_s, b.path_length_m, b.shield_interventions) == \
@@ -84,7 +86,8 @@ def test_summary_columns():
     def ep(status, t=10.0, path=2.0, fault=False, moving=False, shield=1):
         hit = status == "collision"
         return EpisodeResult("x", 0, status, t, path, fault, moving, "agent 1" if hit else None,
-                             90.0 if hit else None, 0.3, shield, 200, 5.0)
+                             90.0 if hit else None, 0.3, shield, 200, 5.0,
+                             shield_kinds={"turned": shield} if hit else {"replaced": shield})
 
     s = summarise([ep("success", 10.0, 3.0), ep("success", 20.0, 4.0),
                    ep("collision", fault=True, moving=True), ep("collision", moving=True),
@@ -97,6 +100,7 @@ def test_summary_columns():
     assert s["avg_path_length_m"] == pytest.approx(3.5)  # over successes
     assert s["avg_speed_m_s"] == pytest.approx((0.3 + 0.2) / 2)
     assert s["shield_interventions"] == 6
+    assert s["shield_interventions_by_kind"] == {"replaced": 3, "turned": 3}
     assert summarise([ep("timeout")])["avg_speed_m_s"] is None
 
 
@@ -110,6 +114,9 @@ def test_eval_cli_progress_lines_json_result_and_bad_scenario(short_room, safemo
     result = json.loads(line)
     s = result["scenarios"][short_room]
     assert s["episodes"] == 1 and s["success_rate"] == 1.0 and result["crowd"] == "scenario"
+    (episode,) = result["episodes"]
+    assert sum(episode["shield_kinds"].values()) == episode["shield_interventions"]
+    assert s["shield_interventions_by_kind"] == episode["shield_kinds"]
     bad = safemove(["eval", "--scenarios", "no_such_room"])
     assert bad.wait(timeout=30) == 2
     assert "no_such_room" in bad.stderr and "Traceback" not in bad.stderr
