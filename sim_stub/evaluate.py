@@ -97,8 +97,7 @@ class EpisodeResult:
     # the stall recovery (runtime.planning.stall_recovery): escapes, and takeovers of a policy
     stall_escapes: int = 0
     dwa_takeovers: int = 0
-    # shield_interventions by kind (replaced, turned, braked): a policy the shield keeps turning in
-    # place is asking for what it may not have, one it replaces is only off the certified set
+    # shield_interventions by kind (replaced by a certified candidate, turned in place, braked)
     shield_kinds: dict[str, int] = field(default_factory=dict)
     # with EvalSettings.trajectories only; never in the JSON result (`episode_dict`)
     trajectory: Trajectory | None = field(default=None, repr=False, compare=False)
@@ -160,6 +159,7 @@ def run_episode(scenario_name: str, seed: int, settings: EvalSettings) -> Episod
     world = episode.world
     out = world.outcome
     summary = job.summary()
+    shield_kinds = {k: int(n) for k, n in summary.get("shield_interventions", {}).items()}
     trajectory = None
     if xy is not None:
         xy.extend((robot.x, robot.y))  # where the episode was judged over (the contact)
@@ -174,7 +174,7 @@ def run_episode(scenario_name: str, seed: int, settings: EvalSettings) -> Episod
         collided_with=out.collided_with,
         contact_bearing_deg=None if out.contact is None else out.contact.bearing_deg,
         min_separation_m=float(world.min_separation),
-        shield_interventions=int(sum(summary.get("shield_interventions", {}).values())),
+        shield_interventions=sum(shield_kinds.values()),
         cycles=episode.cycles,
         job_p99_ms=float(np.percentile(1e3 * np.array(job_s), 99)) if job_s else 0.0,
         contact_in_view_s=(in_view.seen_for(int(out.collided_with.split()[1]), out.t)
@@ -182,7 +182,7 @@ def run_episode(scenario_name: str, seed: int, settings: EvalSettings) -> Episod
                            else None),
         stall_escapes=int(summary.get("stall_escapes", 0)),
         dwa_takeovers=int(summary.get("dwa_takeovers", 0)),
-        shield_kinds={k: int(n) for k, n in summary.get("shield_interventions", {}).items()},
+        shield_kinds=shield_kinds,
         trajectory=trajectory)
 
 

@@ -38,6 +38,8 @@ def test_dwa_reaches_the_goal_around_a_box_and_episodes_repeat_exactly(short_roo
     assert a.min_separation_m == math.inf  # nobody in the room
     assert a.contact_in_view_s is None  # nobody to have seen
     assert a.cycles >= a.time_s * 20 - 1  # one planning cycle per 50 ms of simulated time
+    # the box brings the shield in (this seed: turns in place), counted by kind
+    assert a.shield_interventions > 0
     assert set(a.shield_kinds) <= {"replaced", "turned", "braked"}
     assert sum(a.shield_kinds.values()) == a.shield_interventions
     # no wall clock in an episode: the same seed gives the same episode
@@ -115,8 +117,7 @@ def test_eval_cli_progress_lines_json_result_and_bad_scenario(short_room, safemo
     s = result["scenarios"][short_room]
     assert s["episodes"] == 1 and s["success_rate"] == 1.0 and result["crowd"] == "scenario"
     (episode,) = result["episodes"]
-    assert sum(episode["shield_kinds"].values()) == episode["shield_interventions"]
-    assert s["shield_interventions_by_kind"] == episode["shield_kinds"]
+    assert episode["shield_kinds"] and s["shield_interventions_by_kind"] == episode["shield_kinds"]
     bad = safemove(["eval", "--scenarios", "no_such_room"])
     assert bad.wait(timeout=30) == 2
     assert "no_such_room" in bad.stderr and "Traceback" not in bad.stderr
