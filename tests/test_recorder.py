@@ -54,6 +54,21 @@ def read(path: Path) -> tuple[dict, dict[str, list]]:
     return schemas, messages
 
 
+def test_starting_leaves_other_files_in_the_directory_alone(tmp_path):
+    """`eval --jobs 2 --record DIR` starts two recorders in one directory at once: one's
+    write probe must not be another's (a shared probe name, removed by the first, failed the
+    second's start and lost the evaluation)."""
+    others = {name: tmp_path / name for name in (".write-probe", ".probe", "a.mcap")}
+    for path in others.values():
+        path.write_bytes(b"another recorder's")
+    rec = recorder(tmp_path)
+    rec.start()
+    rec.stop()
+    assert {p.name: p.read_bytes() for p in others.values() if p.exists()} == {
+        name: b"another recorder's" for name in others}
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(others)
+
+
 def test_a_file_holds_every_channel_in_foxglove_schemas(tmp_path, records):
     rec = recorder(tmp_path, full_depth_every=5)
     rec.start()

@@ -102,14 +102,17 @@ class Recorder:
     # --- life cycle ------------------------------------------------------------------------
 
     def start(self) -> None:
-        """Create the directory (a failure is the user's: one line, exit 2) and the thread."""
+        """Create the directory (a failure is the user's: one line, exit 2) and the thread.
+        Writability is probed with an unnamed file: recorders starting together in one
+        directory (`eval --jobs N --record`) must not remove each other's probe."""
+        import tempfile
+
         from runtime.errors import ConfigError
 
         try:
             self.directory.mkdir(parents=True, exist_ok=True)
-            probe = self.directory / ".write-probe"
-            probe.write_bytes(b"")
-            probe.unlink()
+            with tempfile.TemporaryFile(dir=self.directory) as probe:
+                probe.write(b"\0")
         except OSError as exc:
             raise ConfigError(f"recorder.directory {self.directory}: cannot write there:"
                               f" {exc.strerror or exc}") from None
