@@ -5,6 +5,7 @@ from __future__ import annotations
 import itertools
 import os
 import time
+from collections.abc import Callable
 
 import pytest
 
@@ -30,6 +31,18 @@ def read_commands(master: int, parser: FrameParser) -> list[tuple[int, int]]:
     except BlockingIOError:
         return []
     return [decode_wheel_speed(f.payload) for f in parser.feed(data) if f.command == CMD_WHEEL_SPEED]
+
+
+def read_until(master: int, done: Callable[[bytes], bool], timeout: float = 2.0) -> bytes:
+    """What the link wrote, read until `done` holds (or the timeout): a pty hands the slave's
+    bytes to the master asynchronously, so a write that returned may not be readable yet."""
+    data, deadline = b"", time.monotonic() + timeout
+    while not done(data) and time.monotonic() < deadline:
+        try:
+            data += os.read(master, 65536)
+        except BlockingIOError:
+            time.sleep(0.005)
+    return data
 
 
 def collect(master: int, seconds: float, feed=None) -> list[tuple[float, tuple[int, int]]]:
@@ -83,9 +96,14 @@ def test_close_sends_stop_last(pty_pair):
     link.set_command(Twist(0.2, 0.0), time.monotonic())
     time.sleep(0.2)
     link.close()
-    parser = FrameParser(HOST_TO_BASE)
-    commands = read_commands(master, parser)
-    assert (692, 692) in commands and commands[-1] == (0, 0)
+
+    def commands(data: bytes) -> list[tuple[int, int]]:
+        return [decode_wheel_speed(f.payload) for f in FrameParser(HOST_TO_BASE).feed(data)
+                if f.command == CMD_WHEEL_SPEED]
+
+    sent = commands(read_until(master, lambda d: commands(d)[-2:] == [(0, 0), (0, 0)]
+                               and (692, 692) in commands(d)))
+    assert (692, 692) in sent and sent[-1] == (0, 0)
     assert link.stats().stops_sent >= 2
 
 
@@ -94,7 +112,7 @@ def test_fresh_connection_starts_with_stop_then_vendor_query(pty_pair):
     link = make_link(port)
     time.sleep(0.05)
     link.close()
-    data = os.read(master, 4096)
+    data = read_until(master, lambda d: len(d) >= len(STOP_FRAME) + 8)
     assert data.startswith(STOP_FRAME + bytes.fromhex("534B020016000D0A"))
 
 
