@@ -25,12 +25,17 @@ from runtime.config.devices import BaseConfig
 from runtime.types import Twist
 
 
+def wheel_commands(data: bytes, parser: FrameParser | None = None) -> list[tuple[int, int]]:
+    parser = FrameParser(HOST_TO_BASE) if parser is None else parser
+    return [decode_wheel_speed(f.payload) for f in parser.feed(data) if f.command == CMD_WHEEL_SPEED]
+
+
 def read_commands(master: int, parser: FrameParser) -> list[tuple[int, int]]:
     try:
         data = os.read(master, 65536)
     except BlockingIOError:
         return []
-    return [decode_wheel_speed(f.payload) for f in parser.feed(data) if f.command == CMD_WHEEL_SPEED]
+    return wheel_commands(data, parser)
 
 
 def read_until(master: int, done: Callable[[bytes], bool], timeout: float = 2.0) -> bytes:
@@ -96,13 +101,8 @@ def test_close_sends_stop_last(pty_pair):
     link.set_command(Twist(0.2, 0.0), time.monotonic())
     time.sleep(0.2)
     link.close()
-
-    def commands(data: bytes) -> list[tuple[int, int]]:
-        return [decode_wheel_speed(f.payload) for f in FrameParser(HOST_TO_BASE).feed(data)
-                if f.command == CMD_WHEEL_SPEED]
-
-    sent = commands(read_until(master, lambda d: commands(d)[-2:] == [(0, 0), (0, 0)]
-                               and (692, 692) in commands(d)))
+    sent = wheel_commands(read_until(master, lambda d: wheel_commands(d)[-2:] == [(0, 0), (0, 0)]
+                                     and (692, 692) in wheel_commands(d)))
     assert (692, 692) in sent and sent[-1] == (0, 0)
     assert link.stats().stops_sent >= 2
 

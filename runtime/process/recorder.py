@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import os
+import tempfile
 import threading
 import time
 from collections import deque
@@ -105,8 +106,6 @@ class Recorder:
         """Create the directory (a failure is the user's: one line, exit 2) and the thread.
         Writability is probed with an unnamed file: recorders starting together in one
         directory (`eval --jobs N --record`) must not remove each other's probe."""
-        import tempfile
-
         from runtime.errors import ConfigError
 
         try:
