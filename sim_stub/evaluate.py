@@ -276,6 +276,8 @@ def evaluate(scenarios: list[str], episodes: int, seed: int, settings: EvalSetti
         "crowd": settings.crowd,
         "camera_hfov_deg": settings.camera_hfov_deg,
         "surround_people": settings.surround_people,
+        "config": None if settings.config_path is None else str(settings.config_path),
+        "overrides": list(settings.overrides),
         "scenarios": {name: summarise([r for r in results if r.scenario == name])
                       for name in scenarios},
         "episodes": [r.episode_dict() for r in results],

@@ -108,7 +108,7 @@ def test_summary_columns():
 
 def test_eval_cli_progress_lines_json_result_and_bad_scenario(short_room, safemove):
     run = safemove(["eval", "--scenarios", short_room, "--episodes", "1", "--fps", "10",
-                    "--no-noise"])
+                    "--no-noise", "--set", "recovery.takeover_stand_s=3"])
     assert run.wait(timeout=120) == 0, run.stderr[-2000:]
     # stderr is no terminal: a plain line per episode, no bar; stdout: the JSON result alone
     assert f"{short_room} seed 0: success at" in run.stderr and "\r" not in run.stderr
@@ -116,6 +116,7 @@ def test_eval_cli_progress_lines_json_result_and_bad_scenario(short_room, safemo
     result = json.loads(line)
     s = result["scenarios"][short_room]
     assert s["episodes"] == 1 and s["success_rate"] == 1.0 and result["crowd"] == "scenario"
+    assert result["overrides"] == ["recovery.takeover_stand_s=3"]  # what ran, to run it again
     (episode,) = result["episodes"]
     assert episode["shield_kinds"] and s["shield_interventions_by_kind"] == episode["shield_kinds"]
     bad = safemove(["eval", "--scenarios", "no_such_room"])

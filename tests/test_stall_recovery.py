@@ -166,3 +166,49 @@ def test_obstacles_are_points_and_confirmed_tracks_in_the_odom_frame():
     centres, radii = obstacles_odom(odom, world([(0.5, 0.0)], [person((3.0, 3.0)), unconfirmed]))
     np.testing.assert_allclose(centres, [[1.0, 2.5], [3.0, 3.0]], atol=1e-12)
     np.testing.assert_allclose(radii, [0.0, 0.3])
+
+
+def test_a_policy_moving_without_progress_past_something_in_the_way_is_taken_over_when_asked():
+    """takeover_when_blocked: a person stands in the way and the policy creeps and turns in front
+    of them for stall_s without coming takeover_progress_m closer: DWA drives (it waits for or
+    goes round people where a policy may keep facing them). Off (the default), the policy keeps
+    the wheel."""
+    blocked = world(tracks=[person((0.6, 0.0))])
+    cfg = RecoveryConfig(stall_s=4.0, stall_distance_m=0.05, takeover_progress_m=0.5)
+    asked = StallRecovery(RecoveryConfig(**{**cfg.__dict__, "takeover_when_blocked": True}), 0.17)
+    default = StallRecovery(cfg, 0.17)
+    for rec in (asked, default):
+        for t in np.arange(0.0, 4.05, 0.05):  # 0.1 m/s, half of it toward the goal: 0.2 m
+            rec.planning_goal(float(t), Odometry(x=0.05 * t, y=0.0866 * t, distance=0.1 * t),
+                              blocked, GOAL)
+    assert asked.dwa_drives and (asked.takeovers, asked.escapes) == (1, 0)
+    assert not default.dwa_drives and default.takeovers == 0
+
+
+def test_a_policy_standing_before_something_in_the_way_steps_away_even_when_takeovers_are_asked():
+    """Standing still in front of a box is a stall, whoever drives: the escape, not DWA, which
+    would stand before the box as well."""
+    box = world(points_base=[(0.5, y) for y in np.linspace(-0.5, 0.5, 11)])
+    rec = StallRecovery(RecoveryConfig(stall_s=1.0, takeover_when_blocked=True), 0.17)
+    rec.planning_goal(0.0, Odometry(), box, GOAL)
+    assert rec.planning_goal(1.0, Odometry(), box, GOAL) is not GOAL
+    assert not rec.dwa_drives and (rec.takeovers, rec.escapes) == (0, 1)
+
+
+def test_a_takeover_past_something_in_the_way_ends_when_dwa_stands_too():
+    """DWA standing before what blocks the way gains nothing over the policy: after
+    takeover_stand_s of standing the policy drives again (and a standing robot's escape is
+    next). A takeover with the way clear runs its full distance or time."""
+    cfg = RecoveryConfig(stall_s=4.0, takeover_progress_m=0.5, takeover_stand_s=2.0,
+                         escape_timeout_s=8.0, takeover_when_blocked=True)
+    for way, expected_end in ((world(tracks=[person((0.6, 0.0))]), 6.0), (world(), 12.0)):
+        rec = StallRecovery(cfg, 0.17)
+        for t in np.arange(0.0, 4.05, 0.05):
+            rec.planning_goal(float(t), Odometry(y=0.1 * t, distance=0.1 * t), way, GOAL)
+        assert rec.dwa_drives and rec.takeovers == 1
+        stood = Odometry(y=0.4, distance=0.4)
+        for t in np.arange(4.05, expected_end - 0.04, 0.05):
+            rec.planning_goal(float(t), stood, way, GOAL)
+            assert rec.dwa_drives, t
+        rec.planning_goal(expected_end + 0.01, stood, way, GOAL)
+        assert not rec.dwa_drives

@@ -22,7 +22,11 @@ one of them, the same for every planner decision downstream:
            `escape_goal_m`) leaves room for the robot's disc, DWA's command drives instead of
            the policy's, toward the real goal, until the robot has travelled
            `escape_distance_m` or `escape_timeout_s` has passed; then the policy again. Where
-           something is in the way, the policy keeps the wheel (and a stall, an escape).
+           something is in the way, the policy keeps the wheel (and a stall, an escape),
+           unless `takeover_when_blocked`: then a policy that moves without coming
+           `takeover_progress_m` closer in `stall_s` (creeping, turning before a person) hands
+           over too, and that takeover ends early once the robot has stood for
+           `takeover_stand_s` (DWA waits as well; standing is the escape's business).
 
 Every command still goes through the shield; the escape only moves the goal DWA plans for and,
 in the SafeMove job, the goal in the policy's observation, and a takeover only chooses DWA's
@@ -63,6 +67,18 @@ class RecoveryConfig:
         True, "the SafeMove job: no progress toward the goal for stall_s with the way to it"
         " clear hands the drive to DWA, toward the real goal, for the escape's distance or"
         " time (a policy can freeze beside a goal it never met in training)")
+    takeover_progress_m: float = setting(
+        0.05, "the SafeMove job: the policy makes progress when it comes this much closer to"
+        " the goal within stall_s; less is a takeover's first condition", "m", min=0.001,
+        max=5.0)
+    takeover_stand_s: float = setting(
+        2.0, "a takeover with something in the way ends when the robot has stood (travelled"
+        " less than stall_distance_m) this long: DWA waits too, the stall's escape is due",
+        "s", min=0.1, max=60.0)
+    takeover_when_blocked: bool = setting(
+        False, "the SafeMove job: a policy that moves without progress hands the drive to DWA"
+        " even with something in the way (DWA waits for or goes round people a policy may"
+        " keep facing; measured in the README's Evaluation)")
 
 
 @dataclass(frozen=True)
@@ -70,6 +86,7 @@ class _Escape:
     start_t: float
     start_distance: float
     goal: np.ndarray | None  # (2,) odom; None: a takeover, DWA drives to the real goal
+    blocked: bool = False  # a takeover with something in the way: it ends when DWA stands
 
 
 class StallRecovery:
@@ -102,25 +119,33 @@ class StallRecovery:
         to_goal = float(np.hypot(*(goal - here)))
         if self._escape is not None:
             e = self._escape
+            assert self._anchor is not None  # set before any escape starts
+            if e.blocked and odom.distance - self._anchor[1] >= cfg.stall_distance_m:
+                self._anchor = (now, odom.distance)
+            dwa_stands = e.blocked and now - self._anchor[0] >= cfg.takeover_stand_s
             if (odom.distance - e.start_distance < cfg.escape_distance_m
-                    and now - e.start_t < cfg.escape_timeout_s):
+                    and now - e.start_t < cfg.escape_timeout_s and not dwa_stands):
                 return goal if e.goal is None else e.goal
             self._escape = None
             self._anchor, self._closest = (now, odom.distance), (now, to_goal)
             return goal
-        if self._closest is None or to_goal <= self._closest[1] - cfg.stall_distance_m:
+        if self._closest is None or to_goal <= self._closest[1] - cfg.takeover_progress_m:
             self._closest = (now, to_goal)
         if self._anchor is None or odom.distance - self._anchor[1] >= cfg.stall_distance_m:
             self._anchor = (now, odom.distance)
         if self._takeover_radius is not None and now - self._closest[0] >= cfg.stall_s:
             centres, radii = obstacles_odom(odom, world)
-            if way_gap(here, goal, centres, radii, cfg.escape_goal_m) > self._takeover_radius:
-                self._escape = _Escape(now, odom.distance, None)
+            clear = way_gap(here, goal, centres, radii, cfg.escape_goal_m) > self._takeover_radius
+            moving = now - self._anchor[0] < cfg.stall_s
+            if clear or (cfg.takeover_when_blocked and moving):
+                self._escape = _Escape(now, odom.distance, None, blocked=not clear)
                 self.takeovers += 1
                 log.info("no progress toward the goal for %.1f s (%.3f m travelled), the way to"
-                         " it clear: DWA drives toward it for up to %.2f m or %.0f s",
+                         " it %s: DWA drives toward it for up to %.2f m or %.0f s",
                          now - self._closest[0], odom.distance - self._anchor[1],
-                         cfg.escape_distance_m, cfg.escape_timeout_s)
+                         "clear" if clear else "blocked", cfg.escape_distance_m,
+                         cfg.escape_timeout_s)
+                self._anchor = (now, odom.distance)
                 return goal
             self._closest = (now, to_goal)  # something is in the way: look again in stall_s
         if now - self._anchor[0] < cfg.stall_s:
