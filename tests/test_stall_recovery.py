@@ -3,6 +3,7 @@ either ends."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -175,7 +176,7 @@ def test_a_policy_moving_without_progress_past_something_in_the_way_is_taken_ove
     the wheel."""
     blocked = world(tracks=[person((0.6, 0.0))])
     cfg = RecoveryConfig(stall_s=4.0, stall_distance_m=0.05, takeover_progress_m=0.5)
-    asked = StallRecovery(RecoveryConfig(**{**cfg.__dict__, "takeover_when_blocked": True}), 0.17)
+    asked = StallRecovery(dataclasses.replace(cfg, takeover_when_blocked=True), 0.17)
     default = StallRecovery(cfg, 0.17)
     for rec in (asked, default):
         for t in np.arange(0.0, 4.05, 0.05):  # 0.1 m/s, half of it toward the goal: 0.2 m
