@@ -60,6 +60,8 @@ def plan_reference(cfg: DWAConfig, lim: LimitsConfig, v0: float, omega0: float, 
     gx, gy = float(goal[0]), float(goal[1])
     # gaps count from an obstacle's overlap where the robot stands (runtime.planning.dwa's module docs)
     over = [math.hypot(*obs[j][0]) < rad[j][0] + prep.r_eff for j in range(len(obs))]
+    walking = [any(abs(obs[j][k][i] - obs[j][0][i]) > 1e-9 for k in range(steps) for i in (0, 1))
+               for j in range(len(obs))]
     static_floor = 0.0
     if grid is not None:
         ix, iy = prep.cell_index(0.0, 0.0, cfg.grid_cell_m)
@@ -67,12 +69,14 @@ def plan_reference(cfg: DWAConfig, lim: LimitsConfig, v0: float, omega0: float, 
     vs, ws = (axis.tolist() for axis in grid_axes(cfg, prep.window))
 
     samples: list[tuple[float, float]] = []
-    raws: dict[str, list[float]] = {"heading": [], "clearance": [], "velocity": [], "density": []}
+    raws: dict[str, list[float]] = {"heading": [], "clearance": [], "velocity": [], "density": [],
+                                    "evasion": []}
     admissible: list[bool] = []
     for v in vs:
         for w in ws:
             traj = _trajectory(v, w, cfg.dt, steps)
             min_gap = math.inf
+            walk_gap = 0.0
             first_coll = -1
             n_obs = len(obs) + len(clusters)
             closest = [math.inf] * n_obs
@@ -89,6 +93,8 @@ def plan_reference(cfg: DWAConfig, lim: LimitsConfig, v0: float, omega0: float, 
                     if over[j]:  # no closer than to the robot standing still
                         reach = min(reach, math.hypot(ox, oy))
                     gap_k = min(gap_k, d - reach)
+                    if walking[j]:
+                        walk_gap = min(walk_gap, d - reach)
                     closest[j] = min(closest[j], d)
                     dist_sum[j] += d
                 for c, (ox, oy) in enumerate(clusters):
@@ -121,6 +127,10 @@ def plan_reference(cfg: DWAConfig, lim: LimitsConfig, v0: float, omega0: float, 
             raws["clearance"].append(clearance)
             raws["velocity"].append(v)
             raws["density"].append(density)
+            if cfg.weight_evasion:
+                walk_gap = min(walk_gap, _after_horizon_gap(cfg, traj[-1], obs, rad, walking, over,
+                                                            prep.r_eff, steps))
+            raws["evasion"].append(max(walk_gap, -cfg.evasion_cap_m) if cfg.weight_evasion else 0.0)
             admissible.append(ok)
 
     scales = term_scales(cfg, lim)
@@ -128,7 +138,8 @@ def plan_reference(cfg: DWAConfig, lim: LimitsConfig, v0: float, omega0: float, 
     total, best, best_total = [], -1, -math.inf
     for i in range(len(samples)):
         g = (cfg.weight_heading * terms["heading"][i] + cfg.weight_clearance * terms["clearance"][i]
-             + cfg.weight_velocity * terms["velocity"][i] - cfg.weight_density * terms["density"][i])
+             + cfg.weight_velocity * terms["velocity"][i] - cfg.weight_density * terms["density"][i]
+             + cfg.weight_evasion * terms["evasion"][i])
         total.append(g)
         if admissible[i] and g > best_total:
             best, best_total = i, g
@@ -138,6 +149,25 @@ def plan_reference(cfg: DWAConfig, lim: LimitsConfig, v0: float, omega0: float, 
         raw={k: np.array(a) for k, a in raws.items()}, total=np.array(total),
         admissible=np.array(admissible), best_index=best, best=best_vw,
     )
+
+
+def _after_horizon_gap(cfg: DWAConfig, end: tuple[float, float, float], obs: list, rad: list,
+                       walking: list[bool], over: list[bool], r_eff: float, steps: int) -> float:
+    """The closest a walker, walking on for another horizon from its last predicted step, comes
+    to the robot standing at the rollout's end, less its reach at that step."""
+    gap = math.inf
+    for j in range(len(obs)):
+        if not walking[j]:
+            continue
+        (px, py), (qx, qy) = obs[j][-1], obs[j][max(steps - 2, 0)]
+        ux, uy = (px - qx) / cfg.dt, (py - qy) / cfg.dt
+        rx, ry = end[0] - px, end[1] - py
+        s = min(max((rx * ux + ry * uy) / max(ux * ux + uy * uy, 1e-12), 0.0), cfg.horizon_s)
+        reach = rad[j][-1] + r_eff
+        if over[j]:
+            reach = min(reach, math.hypot(px, py))
+        gap = min(gap, math.hypot(rx - s * ux, ry - s * uy) - reach)
+    return gap
 
 
 def random_world(rng: np.random.Generator, steps: int, n_points: int, n_tracks: int,

@@ -28,6 +28,12 @@ class DWAConfig:
     weight_clearance: float = setting(1.0, "β: weight of the clearance term", min=0.0)
     weight_velocity: float = setting(2.0, "γ: weight of the velocity term", min=0.0)
     weight_density: float = setting(0.2, "δ: weight of the density penalty", min=0.0)
+    weight_evasion: float = setting(
+        0.0, "ε: weight of the evasion penalty, how deep a walking person's predicted disc"
+        " overlaps the sample's rollout, or the robot standing at its end while they walk on"
+        " for another horizon (0: off, Fox et al.'s DWA)", min=0.0)
+    evasion_cap_m: float = setting(1.0, "σ of the evasion term: the overlap depth that counts as"
+                                   " 1 (deeper overlaps count as this)", "m", min=0.01, max=5.0)
     density_range_m: float = setting(1.0, "an obstacle counts for density within this distance"
                                      " (fully at 0, fading linearly to 0 at this distance)"
                                      " of the trajectory", "m", min=0.0, max=10.0)
@@ -67,9 +73,10 @@ class DWAResult:
     clearance: np.ndarray
     velocity: np.ndarray
     density: np.ndarray
+    evasion: np.ndarray
     total: np.ndarray  # (K,) G, maximised
     admissible: np.ndarray  # (K,) bool
-    raw: dict[str, np.ndarray]  # un-normalised terms (heading, clearance, velocity, density)
+    raw: dict[str, np.ndarray]  # un-normalised terms (heading, clearance, velocity, density, evasion)
     best_index: int
     best: tuple[float, float]
     best_path: np.ndarray  # (steps, 3) x, y, θ

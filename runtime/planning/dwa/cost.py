@@ -34,7 +34,15 @@ class Evaluator:
         far = prep.box_distance(pos)
         keep = (far <= np.maximum(cfg.density_range_m, reach_r + cfg.clearance_cap_m)).any(1)
         pos, reach_r = pos[keep], reach_r[keep]
+        # a walking person's predicted centre moves over the horizon; a standing one's does not
+        self.walking = np.any(np.abs(pos[:, -1] - pos[:, 0]) > 1e-9, axis=1).astype(bool)
         reach_r = standing_reach(pos, reach_r)
+        walk = pos[self.walking]
+        # where each walker is at the horizon, its velocity there and its reach (evasion's
+        # after-horizon check)
+        self.walk_end = walk[:, -1]
+        self.walk_vel = (walk[:, -1] - walk[:, max(steps - 2, 0)]) / cfg.dt
+        self.walk_reach = reach_r[self.walking][:, -1]
         pos, reach_r = pos.astype(np.float32), reach_r.astype(np.float32)
         c = prep.clusters
         if len(c):
@@ -67,6 +75,17 @@ class Evaluator:
         ix += iy
         return self.grid_flat.take(ix, mode="clip")
 
+    def _after_horizon_gap(self, xf: np.ndarray, yf: np.ndarray) -> np.ndarray:
+        """(K,) the closest any walker comes, walking on for another horizon, to the robot
+        standing where each rollout ends, less its reach: a sample that only puts the meeting
+        past the horizon (braking, backing off) is not an escape."""
+        p, u = self.walk_end[:, None, :], self.walk_vel[:, None, :]  # (W, 1, 2)
+        rx, ry = xf[None, :] - p[..., 0], yf[None, :] - p[..., 1]  # (W, K)
+        uu = np.maximum((u ** 2).sum(-1), 1e-12)
+        s = np.clip((rx * u[..., 0] + ry * u[..., 1]) / uu, 0.0, self.cfg.horizon_s)
+        d = np.hypot(rx - s * u[..., 0], ry - s * u[..., 1]) - self.walk_reach[:, None]
+        return d.min(axis=0).astype(np.float32)
+
     def evaluate(self, samples: np.ndarray, x: np.ndarray | None = None,
                  y: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """Raw terms of `samples`; x, y: their rollout when already known (the coarse grid)."""
@@ -83,6 +102,9 @@ class Evaluator:
         gap = self._static_gap(x, y)
         n_obs, n_t = len(self.ox), len(self.reach_r)
         density = np.zeros(k_n)
+        # the deepest overlap of a walking person's predicted disc with the rollout (≤ 0)
+        walk_gap = np.zeros(k_n, np.float32)
+        evade = self.cfg.weight_evasion > 0.0
         if n_obs:
             closest = np.empty((n_obs, k_n), np.float32)
             dist_sum = np.empty((n_obs, k_n), np.float32)
@@ -106,6 +128,9 @@ class Evaluator:
                 if a < n_t:
                     d -= self.reach_r[a:b]
                     np.minimum(gap, d.min(axis=0), out=gap)
+                    walking = self.walking[a:b]
+                    if evade and walking.any():
+                        np.minimum(walk_gap, d[walking].min(axis=(0, 1)), out=walk_gap)
             # soft count: an obstacle whose closest approach is c counts 1 − c/range
             rng = max(cfg.density_range_m, 1e-9)
             weight = np.maximum(1.0 - closest / np.float32(rng), 0.0, dtype=np.float32)
@@ -119,21 +144,27 @@ class Evaluator:
         any_coll = coll[first, np.arange(k_n)]
         s_free = np.abs(v) * first * cfg.dt
         admissible = ~any_coll | (v * v <= 2.0 * self.lim.decel_max * s_free)
+        if evade and len(self.walk_end):
+            np.minimum(walk_gap, self._after_horizon_gap(x[-1], y[-1]), out=walk_gap)
+        evasion = np.maximum(walk_gap, -cfg.evasion_cap_m).astype(np.float64)
         return {"heading": heading, "clearance": clearance.astype(np.float64),
-                "velocity": v.copy(), "density": density, "admissible": admissible}
+                "velocity": v.copy(), "density": density, "evasion": evasion,
+                "admissible": admissible}
 
 
 def term_scales(cfg: DWAConfig, lim: LimitsConfig) -> dict[str, float]:
     """σ: the fixed scale of each cost term (its value at "1")."""
     return {"heading": math.pi, "clearance": cfg.clearance_cap_m,
-            "velocity": max(lim.v_max, -lim.v_min, 1e-9), "density": cfg.density_scale}
+            "velocity": max(lim.v_max, -lim.v_min, 1e-9), "density": cfg.density_scale,
+            "evasion": cfg.evasion_cap_m}
 
 
 def score_terms(cfg: DWAConfig, lim: LimitsConfig, raw: dict[str, np.ndarray]
            ) -> tuple[dict[str, np.ndarray], np.ndarray]:
     n = {k: raw[k] / sigma for k, sigma in term_scales(cfg, lim).items()}
     total = (cfg.weight_heading * n["heading"] + cfg.weight_clearance * n["clearance"]
-             + cfg.weight_velocity * n["velocity"] - cfg.weight_density * n["density"])
+             + cfg.weight_velocity * n["velocity"] - cfg.weight_density * n["density"]
+             + cfg.weight_evasion * n["evasion"])
     return n, total
 
 

@@ -121,9 +121,10 @@ def plan(
     bx, by, bth = ux[:, 0] * bv, uy[:, 0] * bv, prep.times * bw
     return DWAResult(
         samples=samples, heading=norm["heading"], clearance=norm["clearance"],
-        velocity=norm["velocity"], density=norm["density"], total=total,
+        velocity=norm["velocity"], density=norm["density"], evasion=norm["evasion"],
+        total=total,
         admissible=raw["admissible"],
-        raw={k: raw[k] for k in ("heading", "clearance", "velocity", "density")},
+        raw={k: raw[k] for k in ("heading", "clearance", "velocity", "density", "evasion")},
         best_index=best, best=(float(samples[best, 0]), float(samples[best, 1])),
         best_path=np.stack([bx, by, bth], axis=-1),
         admissible_best=bool(raw["admissible"][best]), evaluated=evaluated,
