@@ -120,7 +120,7 @@ class PlaybackDepthSource:
         """Stops the pipeline, after reading the rest of the recording: librealsense (2.59.1)
         can crash the process when a non-real-time playback is stopped mid-file (a segfault in
         `pipeline.stop()`: 2 of 5 runs of 50 such stops here), never once it has played to the
-        end (0 of 1,000 stops)."""
+        end (0 of 300 stops)."""
         if self._pipe is not None:
             try:
                 self._play_out(self._pipe, self._playback)
