@@ -9,8 +9,7 @@ builds them with `planning_step.predict_tracks_base`: constant velocity, radius 
 
 Cost (maximised): G = α·heading + β·clearance + γ·velocity − δ·density + ε·evasion, each term
 divided by a fixed scale σ (`term_scales`: π, clearance_cap_m, the top speed, density_scale,
-evasion_cap_m), so the weights
-mean the same in every window. Normalising over the evaluated samples instead (min–max, or by
+evasion_cap_m), so the weights mean the same in every window. Normalising over the evaluated samples instead (min–max, or by
 the largest) stretches differences of millimetres across a narrow dynamic window until they
 outvote everything: it kept the robot creeping at a few cm/s toward anything within the
 clearance cap. Raw terms of one sample:
@@ -31,8 +30,8 @@ clearance cap. Raw terms of one sample:
   predicted disc of a person walking (a track whose predicted centre moves) overlaps the
   rollout, or the robot standing at the rollout's end while the person walks on at the same
   velocity for another horizon (braking or backing off only puts the meeting past the
-  horizon; it is no escape). Off by default (weight 0). Fox et al.'s admissibility counts a sample admissible
-  when it can stop before its first collision, which a standing robot always can: standing in
+  horizon; it is no escape). Off by default (weight 0). Fox et al.'s admissibility counts a
+  sample admissible when it can stop before its first collision, which a standing robot always can: standing in
   the path of a person who does not see it scores as well as stepping aside (clearance is 0 for
   both), and the robot stops before the person and is walked into. With this term the deeper
   overlap costs more, so the robot turns off the person's line cycle by cycle while the person
