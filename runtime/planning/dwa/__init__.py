@@ -9,10 +9,10 @@ builds them with `planning_step.predict_tracks_base`: constant velocity, radius 
 
 Cost (maximised): G = α·heading + β·clearance + γ·velocity − δ·density + ε·evasion, each term
 divided by a fixed scale σ (`term_scales`: π, clearance_cap_m, the top speed, density_scale,
-evasion_cap_m), so the weights mean the same in every window. Normalising over the evaluated samples instead (min–max, or by
-the largest) stretches differences of millimetres across a narrow dynamic window until they
-outvote everything: it kept the robot creeping at a few cm/s toward anything within the
-clearance cap. Raw terms of one sample:
+evasion_cap_m), so the weights mean the same in every window. Normalising over the evaluated
+samples instead (min–max, or by the largest) stretches differences of millimetres across a
+narrow dynamic window until they outvote everything: it kept the robot creeping at a few cm/s
+toward anything within the clearance cap. Raw terms of one sample:
 - heading   = π − |angle from the final heading to the goal seen from the final position| ∈ [0, π]
 - clearance = clip(min over steps of the gap, 0, clearance_cap); gap = distance to the nearest
   static point − R, and to each track's centre at the same step − its radius − R, with
@@ -26,16 +26,16 @@ clearance cap. Raw terms of one sample:
   the range's edge.) Obstacles for density: each track (at its step-k position) and the static
   points clustered on a density_cell_m grid (one obstacle per occupied cell, at its points'
   mean; cells out of reach + range are dropped).
-- evasion   = max(−evasion_cap, min over walking tracks of their gap) ≤ 0: how deep the
-  predicted disc of a person walking (a track whose predicted centre moves) overlaps the
-  rollout, or the robot standing at the rollout's end while the person walks on at the same
-  velocity for another horizon (braking or backing off only puts the meeting past the
-  horizon; it is no escape). Off by default (weight 0). Fox et al.'s admissibility counts a
-  sample admissible when it can stop before its first collision, which a standing robot always can: standing in
-  the path of a person who does not see it scores as well as stepping aside (clearance is 0 for
-  both), and the robot stops before the person and is walked into. With this term the deeper
-  overlap costs more, so the robot turns off the person's line cycle by cycle while the person
-  is still seconds away (one cycle's window holds only a little turn).
+- evasion   = max(−evasion_cap, min over walking tracks of their gap) ≤ 0: how deep the predicted
+  disc of a person walking (a track whose predicted centre moves) overlaps the rollout, or the
+  robot standing at the rollout's end while the person walks on at the same velocity for another
+  horizon (braking or backing off only puts the meeting past the horizon; it is no escape). Off
+  by default (weight 0). Fox et al.'s admissibility counts a sample admissible when it can stop
+  before its first collision, which a standing robot always can: standing in the path of a
+  person who does not see it scores as well as stepping aside (clearance is 0 for both), and the
+  robot stops before the person and is walked into. With this term the deeper overlap costs
+  more, so the robot turns off the person's line cycle by cycle while the person is still
+  seconds away (one cycle's window holds only a little turn).
 Admissible (Fox et al.): the sample can stop before its first colliding step:
 v² ≤ 2·decel_max·s_free, s_free = |v|·(time of the last step before the first collision).
 A collision later than that only lowers the clearance term.
