@@ -96,7 +96,7 @@ def add_soak(p: argparse.ArgumentParser) -> None:
     p.add_argument("scenario", help="shipped scenario name or scenario file")
     p.add_argument("--minutes", type=finite_float, default=10.0, help="real-time minutes RUNNING")
     p.add_argument("--planner", choices=("dwa", "safemove"), default="dwa")
-    p.add_argument("--model", type=Path, help="the actor for --planner safemove")
+    add_policy_args(p)
     p.add_argument("--seed", type=int, default=3)
     p.add_argument("--crowd", choices=("scenario", "reactive", "oblivious"), default="scenario")
     p.add_argument("--fps", type=finite_float, default=15.0, help="depth frames per second")

@@ -26,8 +26,10 @@ from typing import Any
 import numpy as np
 import yaml
 
+from runtime.cli.args import policy_model
 from runtime.errors import UserError
 from sim_stub.emulator_process import EmulatorProcess
+from sim_stub.provenance import source_commit
 from sim_stub.scenario import SCENARIO_DIR, load_scenario
 from sim_stub.world import goal_in_odom
 
@@ -75,6 +77,8 @@ def lifted_scenario(name: str, minutes: float, directory: Path) -> Path:
 
 
 def soak(args: argparse.Namespace) -> dict[str, Any]:
+    model = policy_model(args, "soak")  # a missing actor is one line before anything starts
+    commit = source_commit()
     with tempfile.TemporaryDirectory(prefix="safemove-soak-") as tmp:
         scenario = lifted_scenario(args.scenario, args.minutes, Path(tmp))
         sim_args = [str(scenario), "--seed", str(args.seed), "--crowd", args.crowd,
@@ -86,7 +90,7 @@ def soak(args: argparse.Namespace) -> dict[str, Any]:
             cmd = [sys.executable, "-m", "runtime.cli.main", "run", "--planner", args.planner,
                    "--goal", f"{gx}", f"{gy}", "--set", f"base.port={sim.link}",
                    "--set", "depth.source=sim", "--set", f"depth.sim_socket={sim.depth_socket}",
-                   *(["--model", str(args.model)] if args.model else []),
+                   *(["--model", str(model)] if model is not None else []),
                    *(a for kv in args.overrides for a in ("--set", kv))]
             err_path = Path(args.log) if args.log else Path(tmp) / "run.err"
             with err_path.open("w") as err:
@@ -124,7 +128,8 @@ def soak(args: argparse.Namespace) -> dict[str, Any]:
     kinds = Counter(" ".join(ln.split()[2:4]) for ln in log_lines if len(ln.split()) > 3)
     return {
         "scenario": args.scenario, "seed": args.seed, "crowd": args.crowd,
-        "planner": args.planner, "minutes": args.minutes, "exit_code": proc.returncode,
+        "planner": args.planner, "model": str(model) if model is not None else None,
+        "commit": commit, "minutes": args.minutes, "exit_code": proc.returncode,
         "state": report.get("state"), "reason": report.get("reason"),
         "cycles": report.get("cycles"), "misses": report.get("misses"),
         "degraded_cycles": report.get("degraded_cycles"),

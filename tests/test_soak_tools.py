@@ -28,3 +28,9 @@ def test_bench_startup_with_a_missing_model_is_one_line(capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1] == ("safemove: error: bench startup: the runtime exited before READY:"
                        " /nonexistent/actor.onnx: model file not found")
+
+
+def test_soak_refuses_an_actor_for_the_dwa_planner_before_anything_starts(capsys):
+    assert main(["soak", "paper_b", "--planner", "dwa", "--variant", "drl"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["safemove: error: soak: --variant is for --planner safemove, not dwa"]
