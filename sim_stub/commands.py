@@ -174,7 +174,7 @@ def add_bench(p: argparse.ArgumentParser) -> None:
                        " against `safemove sim`", bench_startup_run)
     bp.add_argument("--runs", type=int_at_least(1), default=5, help="starts (default 5)")
     bp.add_argument("--planner", choices=("hold", "dwa", "safemove"), default="safemove")
-    bp.add_argument("--model", type=Path, metavar="FILE.onnx", help="the actor for safemove")
+    add_policy_args(bp)
 
     bp = _bench_parser(bsub, "episode", "lock-stepped cycles/s of the DWA and SafeMove jobs,"
                        " where the time goes; training env steps/s", bench_episode_run)
@@ -252,7 +252,8 @@ def bench_policy_run(args: argparse.Namespace) -> int:
 def bench_startup_run(args: argparse.Namespace) -> int:
     from sim_stub.startup_bench import bench_startup
 
-    return print_figures(bench_startup(args.runs, args.planner, args.model), args.json)
+    model = policy_model(args, "bench startup")
+    return print_figures(bench_startup(args.runs, args.planner, model), args.json)
 
 
 def bench_episode_run(args: argparse.Namespace) -> int:

@@ -34,3 +34,9 @@ def test_soak_refuses_an_actor_for_the_dwa_planner_before_anything_starts(capsys
     assert main(["soak", "paper_b", "--planner", "dwa", "--variant", "drl"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["safemove: error: soak: --variant is for --planner safemove, not dwa"]
+
+
+def test_bench_startup_refuses_an_actor_for_the_dwa_planner(capsys):
+    assert main(["bench", "startup", "--planner", "dwa", "--model", "actor.onnx"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["safemove: error: bench startup: --model is for --planner safemove, not dwa"]
