@@ -29,8 +29,9 @@ The crowd is also made reactive (the people see the robot and avoid it, as the D
 With scenario (b)'s shipped oblivious crowd, people walk into the robot whether it stands or
 moves, and one standing at the edge of the view at contact range (33-38° from the robot's
 heading) can be touched by a robot creeping at 0.04-0.10 m/s, some of them inside the view as
-judged here: `safemove soak` measured about one per 10 real-time minutes (README, "Long
-real-time runs"), a rate a 60 s test cannot tell from zero; that limit is measured there.
+judged here: `safemove soak` measured about one per 10 real-time minutes before the shield's
+and memory's fixes and one in the 40 minutes of the latest runs (README, "Long real-time
+runs"), rates a 60 s test cannot tell from zero; that limit is measured there.
 The scenario file is paper_b with its time limit raised, so the world does not time out inside
 the 60 s run.
 """
