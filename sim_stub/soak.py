@@ -77,7 +77,8 @@ def lifted_scenario(name: str, minutes: float, directory: Path) -> Path:
 
 
 def soak(args: argparse.Namespace) -> dict[str, Any]:
-    model = policy_model(args, "soak")  # a missing actor is one line before anything starts
+    # before anything starts: an actor for the DWA planner, or no shipped policy, is one line
+    model = policy_model(args, "soak")
     commit = source_commit()
     with tempfile.TemporaryDirectory(prefix="safemove-soak-") as tmp:
         scenario = lifted_scenario(args.scenario, args.minutes, Path(tmp))
