@@ -163,11 +163,12 @@ def time_training(scenario: str, loaded: LoadedConfig, seed: int, fps: float, no
     previous_threads = torch.get_num_threads()
     torch.set_num_threads(defaults.threads)
     t0 = time.perf_counter()
-    env = make_vec_env([scenario], load_spec(defaults.spec), loaded, workers, seed, fps=fps,
-                       noise=noise, crowd=crowd)
+    spec = load_spec(defaults.spec)
+    env = make_vec_env([scenario], spec, loaded, workers, seed, fps=fps, noise=noise, crowd=crowd)
     try:
         model = make_td3(env, argparse.Namespace(**{**vars(defaults), "seed": seed,
-                                                     "learning_starts": learning_starts}))
+                                                     "learning_starts": learning_starts}),
+                          spec)
         t1 = time.perf_counter()
         model.learn(total_timesteps=learning_starts)
         t2 = time.perf_counter()

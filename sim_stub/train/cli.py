@@ -31,10 +31,16 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
-from runtime.cli.args import add_config_args, finite_float, int_at_least, non_negative_float
+from runtime.cli.args import (
+    add_config_args,
+    finite_float,
+    int_at_least,
+    non_negative_float,
+    positive_float,
+)
 from runtime.config.settings import load_config
 from runtime.errors import UserError
-from runtime.policy.obs_spec import PRESETS, load_spec
+from runtime.policy.obs_spec import PRESETS, ObsSpec, load_spec
 from sim_stub.progress import Progress
 from sim_stub.provenance import source_commit
 from sim_stub.scenario import CROWD_MODES, load_scenario
@@ -109,6 +115,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="bc-td3: behaviour-cloning passes over the demonstrations (default 30)")
     p.add_argument("--critic-warmup", type=int_at_least(0), default=5_000,
                    help="bc-td3: critic-only gradient steps before TD3 (default 5000)")
+    p.add_argument("--bc-alpha", type=positive_float, default=None, metavar="ALPHA",
+                   help="TD3+BC: keep the actor near DWA's choice during TD3, actor loss"
+                        " -ALPHA*Q/mean|Q| + (action - DWA's)^2 (sim_stub/train/td3_bc.py; the"
+                        " paper's ALPHA 2.5, smaller stays closer to DWA); needs a spec with a"
+                        " dwa block (default: plain TD3)")
 
 
 def reward_config(args: argparse.Namespace) -> RewardConfig:
@@ -139,6 +150,9 @@ def run_train(args: argparse.Namespace) -> dict[str, Any]:
     from sim_stub.train.vec_env import make_vec_env
 
     spec = load_spec(args.spec)
+    if args.bc_alpha is not None and teacher_columns(spec) is None:
+        raise UserError(f"--bc-alpha: the spec {spec.name!r} has no dwa block, so its"
+                        " observations do not hold DWA's choice to stay near")
     reward = reward_config(args)
     loaded = load_config(args.config, args.overrides)
     for name in args.scenarios:
@@ -161,7 +175,7 @@ def run_train(args: argparse.Namespace) -> dict[str, Any]:
                        noise=args.noise, crowd=args.crowd, surround_people=args.surround_people,
                        reward=reward,
                        monitor_path=out / "monitor.csv")
-    model = make_td3(env, args)
+    model = make_td3(env, args, spec)
     t0 = time.monotonic()
     start = _start(model, args, out) if args.recipe == "bc-td3" else {}
     # SB3 stops at the first whole VecEnv step at or past --steps
@@ -220,22 +234,40 @@ def _start(model: Any, args: argparse.Namespace, out: Path) -> dict[str, Any]:
                              "critic_warmup": round(t3 - t2, 1)}}
 
 
-def make_td3(env: Any, args: argparse.Namespace) -> Any:
-    """TD3 as `safemove train` runs it on `env` (a VecEnv): one gradient step per transition
-    collected (gradient_steps=-1), whatever the number of envs."""
+def teacher_columns(spec: ObsSpec) -> tuple[int, int] | None:
+    """(start, stop) of DWA's best (v, ω) in the spec's observation, in the actor's [-1, 1]
+    action box (the `dwa` block's first two features), or None without a `dwa` block."""
+    for kind, start, _ in spec.layout():
+        if kind == "dwa":
+            return start, start + 2
+    return None
+
+
+def make_td3(env: Any, args: argparse.Namespace, spec: ObsSpec) -> Any:
+    """TD3 as `safemove train` runs it on `env` (a VecEnv of `spec`'s observations): one
+    gradient step per transition collected (gradient_steps=-1), whatever the number of envs;
+    TD3+BC on DWA's choice with --bc-alpha."""
     import numpy as np
     from stable_baselines3 import TD3
     from stable_baselines3.common.noise import NormalActionNoise
 
     from sim_stub.train.replay import RewardRankedReplayBuffer
+    from sim_stub.train.td3_bc import TD3BC
 
     replay = RewardRankedReplayBuffer if args.replay == "rmax" else None
-    return TD3("MlpPolicy", env, learning_rate=args.learning_rate, replay_buffer_class=replay,
-               learning_starts=args.learning_starts, batch_size=args.batch_size,
-               gradient_steps=-1,
-               action_noise=NormalActionNoise(np.zeros(2), np.full(2, args.action_noise)),
-               policy_kwargs={"net_arch": list(args.net)}, seed=args.seed, device="cpu",
-               verbose=0)
+    settings: dict[str, Any] = {
+        "learning_rate": args.learning_rate, "replay_buffer_class": replay,
+        "learning_starts": args.learning_starts, "batch_size": args.batch_size,
+        "gradient_steps": -1,
+        "action_noise": NormalActionNoise(np.zeros(2), np.full(2, args.action_noise)),
+        "policy_kwargs": {"net_arch": list(args.net)}, "seed": args.seed, "device": "cpu",
+        "verbose": 0}
+    if args.bc_alpha is None:
+        return TD3("MlpPolicy", env, **settings)
+    teacher = teacher_columns(spec)
+    if teacher is None:
+        raise UserError(f"--bc-alpha: the spec {spec.name!r} has no dwa block")
+    return TD3BC("MlpPolicy", env, bc_alpha=args.bc_alpha, teacher=teacher, **settings)
 
 
 def _export(model: Path, spec_path: Path, onnx_path: Path) -> dict[str, Any]:

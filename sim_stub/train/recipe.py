@@ -102,30 +102,16 @@ def warm_up_critics(model: Any, gradient_steps: int) -> float | None:
     """TD3's critic update (clipped double Q with target policy smoothing, Polyak-averaged
     targets) with the actor frozen; returns the mean critic loss of the last 100 steps (None
     without steps)."""
-    import torch
-    import torch.nn.functional as F
     from stable_baselines3.common.utils import polyak_update
 
-    critic, critic_target = model.critic, model.critic_target
-    critic.set_training_mode(True)
+    from sim_stub.train.td3_bc import critic_update
+
+    model.critic.set_training_mode(True)
     losses: list[float] = []
     for _ in range(gradient_steps):
         data = model.replay_buffer.sample(model.batch_size, env=model._vec_normalize_env)
-        with torch.no_grad():
-            noise = data.actions.clone().normal_(0, model.target_policy_noise)
-            noise = noise.clamp(-model.target_noise_clip, model.target_noise_clip)
-            next_actions = (model.actor_target(data.next_observations) + noise).clamp(-1, 1)
-            next_q = torch.cat(critic_target(data.next_observations, next_actions), dim=1)
-            next_q, _ = torch.min(next_q, dim=1, keepdim=True)
-            target = data.rewards + (1 - data.dones) * model.gamma * next_q
-        current = critic(data.observations, data.actions)
-        loss = sum(F.mse_loss(q, target) for q in current)
-        assert isinstance(loss, torch.Tensor)
-        critic.optimizer.zero_grad()
-        loss.backward()
-        critic.optimizer.step()
-        polyak_update(critic.parameters(), critic_target.parameters(), model.tau)
+        losses.append(critic_update(model, data))
+        polyak_update(model.critic.parameters(), model.critic_target.parameters(), model.tau)
         polyak_update(model.critic_batch_norm_stats, model.critic_batch_norm_stats_target, 1.0)
-        losses.append(loss.item())
-    critic.set_training_mode(False)
+    model.critic.set_training_mode(False)
     return float(np.mean(losses[-100:])) if losses else None
