@@ -55,9 +55,10 @@ class TD3BC(TD3):
     """SB3's TD3 with the behaviour-cloning term on DWA's choice in the actor's loss.
 
     `bc_alpha` is α above; `teacher` the (start, stop) columns of DWA's choice in the
-    observation (`sim_stub.train.cli.teacher_columns`)."""
+    observation (`sim_stub.train.cli.teacher_columns`). Both have defaults only because SB3's
+    `load` builds the model without arguments and then restores the saved ones."""
 
-    def __init__(self, *args: Any, bc_alpha: float, teacher: tuple[int, int],
+    def __init__(self, *args: Any, bc_alpha: float = 2.5, teacher: tuple[int, int] | None = None,
                  **kwargs: Any) -> None:
         if not bc_alpha > 0.0:
             raise ValueError(f"bc_alpha must be > 0, got {bc_alpha}")
@@ -67,6 +68,8 @@ class TD3BC(TD3):
 
     def actor_loss(self, observations: th.Tensor) -> tuple[th.Tensor, float]:
         """TD3+BC's actor loss on a minibatch and its cloning part (mean squared error)."""
+        if self.teacher is None:
+            raise RuntimeError("TD3BC needs the columns of DWA's choice (teacher=)")
         start, stop = self.teacher
         label = observations[:, start:stop].clamp(-1.0, 1.0)
         action = self.actor(observations)
