@@ -118,7 +118,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bc-alpha", type=positive_float, default=None, metavar="ALPHA",
                    help="TD3+BC: keep the actor near DWA's choice during TD3, actor loss"
                         " -ALPHA*Q/mean|Q| + (action - DWA's)^2 (sim_stub/train/td3_bc.py; the"
-                        " paper's ALPHA 2.5, smaller stays closer to DWA); needs a spec with a"
+                        " TD3+BC paper uses 2.5, smaller stays closer to DWA); needs a spec with a"
                         " dwa block (default: plain TD3)")
 
 
