@@ -15,6 +15,7 @@ pytest.importorskip("stable_baselines3")
 import gymnasium as gym
 from stable_baselines3.common.vec_env import DummyVecEnv
 
+from runtime.errors import UserError
 from runtime.policy.obs_spec import PRESETS
 from sim_stub.train.cli import add_arguments, make_td3, teacher_columns
 from sim_stub.train.td3_bc import TD3BC
@@ -109,6 +110,9 @@ def test_make_td3_builds_td3_bc_only_when_asked():
                        PRESETS["safemove"])
     assert isinstance(with_bc, TD3BC) and with_bc.bc_alpha == 2.5
     assert with_bc.teacher == teacher_columns(PRESETS["safemove"])
+    with pytest.raises(UserError, match="the spec 'drl' has no dwa block"):
+        make_td3(env, parser.parse_args(["-o", "run", "--net", "8", "--bc-alpha", "2.5"]),
+                 PRESETS["drl"])
 
 
 def test_train_refuses_bc_alpha_without_a_dwa_block(tmp_path, safemove):

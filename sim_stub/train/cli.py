@@ -150,9 +150,7 @@ def run_train(args: argparse.Namespace) -> dict[str, Any]:
     from sim_stub.train.vec_env import make_vec_env
 
     spec = load_spec(args.spec)
-    if args.bc_alpha is not None and teacher_columns(spec) is None:
-        raise UserError(f"--bc-alpha: the spec {spec.name!r} has no dwa block, so its"
-                        " observations do not hold DWA's choice to stay near")
+    bc_teacher(args, spec)  # refused here, before the run directory is made
     reward = reward_config(args)
     loaded = load_config(args.config, args.overrides)
     for name in args.scenarios:
@@ -243,6 +241,18 @@ def teacher_columns(spec: ObsSpec) -> tuple[int, int] | None:
     return None
 
 
+def bc_teacher(args: argparse.Namespace, spec: ObsSpec) -> tuple[int, int] | None:
+    """The columns --bc-alpha keeps the actor near (`teacher_columns`), None without
+    --bc-alpha; a spec whose observation does not hold DWA's choice is refused."""
+    if args.bc_alpha is None:
+        return None
+    teacher = teacher_columns(spec)
+    if teacher is None:
+        raise UserError(f"--bc-alpha: the spec {spec.name!r} has no dwa block, so its"
+                        " observations do not hold DWA's choice to stay near")
+    return teacher
+
+
 def make_td3(env: Any, args: argparse.Namespace, spec: ObsSpec) -> Any:
     """TD3 as `safemove train` runs it on `env` (a VecEnv of `spec`'s observations): one
     gradient step per transition collected (gradient_steps=-1), whatever the number of envs;
@@ -262,11 +272,9 @@ def make_td3(env: Any, args: argparse.Namespace, spec: ObsSpec) -> Any:
         "action_noise": NormalActionNoise(np.zeros(2), np.full(2, args.action_noise)),
         "policy_kwargs": {"net_arch": list(args.net)}, "seed": args.seed, "device": "cpu",
         "verbose": 0}
-    if args.bc_alpha is None:
-        return TD3("MlpPolicy", env, **settings)
-    teacher = teacher_columns(spec)
+    teacher = bc_teacher(args, spec)
     if teacher is None:
-        raise UserError(f"--bc-alpha: the spec {spec.name!r} has no dwa block")
+        return TD3("MlpPolicy", env, **settings)
     return TD3BC("MlpPolicy", env, bc_alpha=args.bc_alpha, teacher=teacher, **settings)
 
 
