@@ -167,8 +167,7 @@ def time_training(scenario: str, loaded: LoadedConfig, seed: int, fps: float, no
     env = make_vec_env([scenario], spec, loaded, workers, seed, fps=fps, noise=noise, crowd=crowd)
     try:
         model = make_td3(env, argparse.Namespace(**{**vars(defaults), "seed": seed,
-                                                     "learning_starts": learning_starts}),
-                          spec)
+                                                     "learning_starts": learning_starts}))
         t1 = time.perf_counter()
         model.learn(total_timesteps=learning_starts)
         t2 = time.perf_counter()

@@ -1,5 +1,6 @@
-"""Reward-ranked ("R_max") replay: batch proportions, the (row, env) bookkeeping with several
-envs, timeouts, lazy ranking, reproducibility, and TD3 training with it."""
+"""The replay buffers: teacher labels kept beside each transition (uniform replay drawing as
+SB3's does), and reward-ranked ("R_max") replay: batch proportions, the (row, env) bookkeeping
+with several envs, timeouts, lazy ranking, reproducibility, and TD3 training with it."""
 
 from __future__ import annotations
 
@@ -11,9 +12,10 @@ pytest.importorskip("stable_baselines3")
 
 import gymnasium as gym
 from stable_baselines3 import TD3
+from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.vec_env import DummyVecEnv
 
-from sim_stub.train.replay import RewardRankedReplayBuffer
+from sim_stub.train.replay import TEACHER_KEY, RewardRankedReplayBuffer, TeacherReplayBuffer
 
 OBS = gym.spaces.Box(-1e6, 1e6, (1,), np.float32)
 ACT = gym.spaces.Box(-1e6, 1e6, (1,), np.float32)
@@ -55,6 +57,47 @@ def test_top_transitions_are_over_represented_by_the_expected_proportion():
     # the rest is uniform over the others: each decile of 0..1799 holds about a ninth of it
     deciles = np.bincount(drawn[~top].astype(int) // 200, minlength=9)
     assert np.all(np.abs(deciles / (~top).sum() - 1 / 9) < 0.02)
+
+
+def _labelled(buf: ReplayBuffer, i: int, n_envs: int) -> None:
+    """One add() whose transitions encode (row i, env e) as i + e / 10, labelled −that."""
+    x = np.array([i + e / 10 for e in range(n_envs)], dtype=np.float32)
+    buf.add(x.reshape(-1, 1), x.reshape(-1, 1), x.reshape(-1, 1), x, np.zeros(n_envs),
+            [{TEACHER_KEY: np.array([-v], dtype=np.float32)} for v in x])
+
+
+def test_uniform_replay_keeps_each_transitions_label_and_draws_as_sb3_does():
+    ours = TeacherReplayBuffer(60, OBS, ACT, device="cpu", n_envs=3)
+    sb3 = ReplayBuffer(60, OBS, ACT, device="cpu", n_envs=3)
+    for i in range(20):
+        _labelled(ours, i, 3)
+        _labelled(sb3, i, 3)
+    np.random.seed(5)
+    s = ours.sample(256)
+    np.random.seed(5)
+    reference = sb3.sample(256)  # a plain run's batches are unchanged by the labels
+    for name in ("observations", "actions", "next_observations", "dones", "rewards"):
+        assert np.array_equal(getattr(s, name).numpy(), getattr(reference, name).numpy()), name
+    x = s.observations.numpy().ravel()
+    assert np.array_equal(s.labels.numpy().ravel(), -x)
+    assert len(set(np.round(x % 1, 1))) == 3  # all three envs drawn
+
+
+def test_a_transition_without_a_label_is_kept_with_nan():
+    buf = TeacherReplayBuffer(4, OBS, ACT, device="cpu", n_envs=1)
+    buf.add(np.zeros((1, 1)), np.zeros((1, 1)), np.zeros((1, 1)), np.zeros(1), np.zeros(1),
+            [{}])
+    assert np.isnan(buf.sample(8).labels.numpy()).all()
+
+
+def test_ranked_samples_carry_their_transitions_labels():
+    buf = _buffer(30, 2, top_fraction=0.2)
+    for i in range(30):
+        _labelled(buf, i, 2)
+    np.random.seed(6)
+    s = buf.sample(256)
+    x = s.rewards.numpy().ravel()
+    assert np.array_equal(s.labels.numpy().ravel(), -x)
 
 
 def test_each_sample_is_one_stored_transition_across_envs():

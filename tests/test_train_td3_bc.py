@@ -1,5 +1,6 @@
-"""TD3+BC on DWA's choice (`safemove train --bc-alpha`): the label is read from the
-observation's dwa block, and a small α holds the actor on it."""
+"""TD3+BC on DWA's choice (`safemove train --bc-alpha`): the env gives DWA's choice with every
+step, the replay buffer keeps it as the label, and a small α holds the actor on it, for every
+spec, `drl` (whose observation does not hold DWA's choice) included."""
 
 from __future__ import annotations
 
@@ -15,61 +16,80 @@ pytest.importorskip("stable_baselines3")
 import gymnasium as gym
 from stable_baselines3.common.vec_env import DummyVecEnv
 
-from runtime.errors import UserError
+from runtime.config.settings import load_config
 from runtime.policy.obs_spec import PRESETS
-from sim_stub.train.cli import add_arguments, make_td3, teacher_columns
+from sim_stub.train.cli import add_arguments, make_td3
+from sim_stub.train.env import SafeMoveEnv
+from sim_stub.train.replay import TEACHER_KEY, RewardRankedReplayBuffer, TeacherReplayBuffer
 from sim_stub.train.td3_bc import TD3BC
 
 LABEL = np.array([0.5, -0.5], dtype=np.float32)
 
 
 class LabelledEnv(gym.Env):
-    """Test double: random observations whose columns 2:4 hold a fixed 'DWA choice'."""
+    """Test double: random observations; each step's info gives a fixed 'DWA choice' (none
+    when `label` is None)."""
 
     observation_space = gym.spaces.Box(-2.0, 2.0, (4,), np.float32)
     action_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
 
-    def __init__(self, label: np.ndarray = LABEL) -> None:
+    def __init__(self, label: np.ndarray | None = LABEL) -> None:
         self.label = label
         self.t = 0
-
-    def _obs(self) -> np.ndarray:
-        obs = self.np_random.uniform(-1.0, 1.0, 4).astype(np.float32)
-        obs[2:4] = self.label
-        return obs
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
               ) -> tuple[np.ndarray, dict[str, Any]]:
         super().reset(seed=seed)
         self.t = 0
-        return self._obs(), {}
+        return self.observation_space.sample(), {}
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         self.t += 1
         reward = float(action[0])  # TD3 alone would drive a[0] to +1, away from the label
-        return self._obs(), reward, False, self.t >= 10, {}
+        info = {} if self.label is None else {TEACHER_KEY: self.label}
+        return self.observation_space.sample(), reward, False, self.t >= 10, info
 
 
-def _model(alpha: float, label: np.ndarray = LABEL) -> TD3BC:
+def _model(alpha: float, label: np.ndarray | None = LABEL, **kw: Any) -> TD3BC:
     return TD3BC("MlpPolicy", DummyVecEnv([lambda: LabelledEnv(label)]), bc_alpha=alpha,
-                 teacher=(2, 4), learning_starts=100, batch_size=32, learning_rate=3e-3,
-                 policy_kwargs={"net_arch": [32, 32]}, seed=0, device="cpu")
+                 learning_starts=100, batch_size=32, learning_rate=3e-3,
+                 policy_kwargs={"net_arch": [32, 32]}, seed=0, device="cpu", **kw)
 
 
 def _actions(model: TD3BC) -> np.ndarray:
     """The deterministic actions on 64 fresh observations like the env's."""
-    obs = np.random.default_rng(1).uniform(-1.0, 1.0, (64, 4)).astype(np.float32)
-    obs[:, 2:4] = LABEL
+    obs = np.random.default_rng(1).uniform(-2.0, 2.0, (64, 4)).astype(np.float32)
     actions, _ = model.predict(obs, deterministic=True)
     return actions
 
 
-def test_teacher_columns_are_the_dwa_blocks_first_two():
-    spec = PRESETS["safemove"]
-    start = next(s for kind, s, _ in spec.layout() if kind == "dwa")
-    assert teacher_columns(spec) == (start, start + 2)
-    assert spec.names()[start:start + 2] == ["dwa.best_v", "dwa.best_omega"]
-    assert teacher_columns(PRESETS["drl"]) is None
+@pytest.mark.parametrize("preset", ["safemove", "drl"])
+def test_each_step_gives_dwas_choice_in_the_observation_it_acted_on(tmp_path, preset):
+    from rooms import write_room
+
+    crowd = "{count: 2, reactive: false, speed_range: [0.5, 0.8], radius: 0.3}"
+    room = write_room(tmp_path, "room", goal=(3.0, 1.0), time_limit_s=10.0, crowd=crowd)
+    spec = PRESETS[preset]
+    env = SafeMoveEnv([room], spec, load_config(None, []), noise=False)
+    env.reset(seed=3)
+    dwa = next(start for kind, start, _ in PRESETS["safemove"].layout() if kind == "dwa")
+    twin = SafeMoveEnv([room], PRESETS["safemove"], load_config(None, []), noise=False)
+    twin_obs, _ = twin.reset(seed=3)  # the same episode, observed with the dwa block
+    labels = []
+    for k in range(40):
+        expert = env.expert_action()
+        action = np.array([0.6, 0.4 * np.sin(k / 5)], dtype=np.float32)
+        _, _, terminated, truncated, info = env.step(action)
+        label = info[TEACHER_KEY]
+        assert label.dtype == np.float32 and label.shape == (2,)
+        # the observation's own features, to the bit, and the demonstrations' expert action
+        assert np.array_equal(label, twin_obs[dwa:dwa + 2])
+        assert np.allclose(label, expert, atol=1e-6)
+        labels.append(label)
+        twin_obs, *_ = twin.step(action)
+        if terminated or truncated:
+            break
+    assert len({tuple(x) for x in labels}) > 5  # DWA's choice changes as the robot moves
 
 
 def test_a_small_alpha_holds_the_actor_on_dwas_choice():
@@ -91,35 +111,29 @@ def test_labels_outside_the_box_are_clipped_to_it():
     assert model.logger.name_to_value["train/bc_loss"] < 0.05  # unreachable at ±1.8
 
 
-def test_alpha_must_pull_and_the_teacher_be_known():
+def test_alpha_must_pull_and_every_transition_have_a_label():
     with pytest.raises(ValueError, match="bc_alpha must be > 0"):
         _model(alpha=0.0)
-    model = TD3BC("MlpPolicy", DummyVecEnv([LabelledEnv]), learning_starts=10, batch_size=8,
-                  policy_kwargs={"net_arch": [8]}, seed=0, device="cpu")
-    with pytest.raises(RuntimeError, match="columns of DWA's choice"):
-        model.learn(total_timesteps=20)
+    from stable_baselines3.common.buffers import ReplayBuffer
+
+    with pytest.raises(ValueError, match="keeps teacher labels"):
+        _model(alpha=2.5, replay_buffer_class=ReplayBuffer)
+    with pytest.raises(RuntimeError, match="has no teacher label"):
+        _model(alpha=2.5, label=None).learn(total_timesteps=150)
 
 
-def test_make_td3_builds_td3_bc_only_when_asked():
+@pytest.mark.parametrize("preset", ["safemove", "drl_dwa", "drl"])
+def test_make_td3_keeps_labels_and_builds_td3_bc_only_when_asked(preset):
     parser = argparse.ArgumentParser()
     add_arguments(parser)
     env = DummyVecEnv([LabelledEnv])
-    plain = make_td3(env, parser.parse_args(["-o", "run", "--net", "8"]), PRESETS["safemove"])
+    plain = make_td3(env, parser.parse_args(["-o", "run", "--spec", preset, "--net", "8"]))
     assert type(plain).__name__ == "TD3"
-    with_bc = make_td3(env, parser.parse_args(["-o", "run", "--net", "8", "--bc-alpha", "2.5"]),
-                       PRESETS["safemove"])
+    assert isinstance(plain.replay_buffer, TeacherReplayBuffer)
+    with_bc = make_td3(env, parser.parse_args(["-o", "run", "--spec", preset, "--net", "8",
+                                               "--bc-alpha", "2.5", "--replay", "rmax"]))
     assert isinstance(with_bc, TD3BC) and with_bc.bc_alpha == 2.5
-    assert with_bc.teacher == teacher_columns(PRESETS["safemove"])
-    with pytest.raises(UserError, match="the spec 'drl' has no dwa block"):
-        make_td3(env, parser.parse_args(["-o", "run", "--net", "8", "--bc-alpha", "2.5"]),
-                 PRESETS["drl"])
-
-
-def test_train_refuses_bc_alpha_without_a_dwa_block(tmp_path, safemove):
-    run = safemove(["train", "-o", str(tmp_path / "run"), "--spec", "drl", "--bc-alpha", "2.5"])
-    assert run.wait(timeout=120) == 2
-    assert "--bc-alpha: the spec 'drl' has no dwa block" in run.stderr
-    assert "Traceback" not in run.stderr and not (tmp_path / "run").exists()
+    assert isinstance(with_bc.replay_buffer, RewardRankedReplayBuffer)
 
 
 @pytest.mark.parametrize("alpha", ["0", "-1", "nan"])
@@ -130,19 +144,19 @@ def test_train_refuses_an_alpha_that_does_not_pull(tmp_path, safemove, alpha):
 
 
 @pytest.mark.timeout(600)
-def test_train_with_bc_alpha_saves_and_exports_a_td3_bc_model(tmp_path, safemove):
+def test_train_with_bc_alpha_saves_and_exports_a_td3_bc_drl_model(tmp_path, safemove):
+    # drl: the label comes from the env, its observation has no dwa block
     from rooms import write_room
 
     room = write_room(tmp_path, "room", goal=(1.5, 0.0), time_limit_s=12.0, crowd="{count: 0}")
     out = tmp_path / "run"
-    run = safemove(["train", "-o", str(out), "--envs", "1", "--scenarios", room, "--no-noise",
-                    "--net", "32", "32", "--batch-size", "32", "--demo-steps", "100",
-                    "--bc-epochs", "2", "--critic-warmup", "10", "--steps", "60",
-                    "--bc-alpha", "2.5", "--json"])
+    run = safemove(["train", "-o", str(out), "--spec", "drl", "--envs", "1", "--scenarios",
+                    room, "--no-noise", "--net", "32", "32", "--batch-size", "32",
+                    "--demo-steps", "100", "--bc-epochs", "2", "--critic-warmup", "10",
+                    "--steps", "60", "--bc-alpha", "2.5", "--json"])
     assert run.wait(timeout=500) == 0, run.stderr[-3000:]
     assert (out / "actor.onnx").is_file()
     record = json.loads((out / "summary.json").read_text())
-    assert record["settings"]["bc_alpha"] == 2.5
+    assert record["settings"]["bc_alpha"] == 2.5 and record["settings"]["spec"] == "drl"
     model = TD3BC.load(out / "td3.zip", device="cpu")
-    assert model.bc_alpha == 2.5  # the teacher columns come back as a list
-    assert tuple(model.teacher) == teacher_columns(PRESETS["safemove"])
+    assert model.bc_alpha == 2.5 and model.replay_buffer_class is TeacherReplayBuffer

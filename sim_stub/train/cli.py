@@ -40,7 +40,7 @@ from runtime.cli.args import (
 )
 from runtime.config.settings import load_config
 from runtime.errors import UserError
-from runtime.policy.obs_spec import PRESETS, ObsSpec, load_spec
+from runtime.policy.obs_spec import PRESETS, load_spec
 from sim_stub.progress import Progress
 from sim_stub.provenance import source_commit
 from sim_stub.scenario import CROWD_MODES, load_scenario
@@ -101,7 +101,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="project reward: the penalty for each cycle the shield changed the"
                         f" actor's command (default {RewardConfig().shield_change})")
     p.add_argument("--replay", choices=REPLAYS, default="uniform",
-                   help="uniform: SB3's replay buffer; rmax: the paper's reward-ranked replay,"
+                   help="uniform: drawn as SB3's replay buffer draws; rmax: the paper's reward-ranked replay,"
                         " half of each batch from the top-rewarded tenth (default uniform)")
     p.add_argument("--recipe", choices=RECIPES, default="bc-td3",
                    help="bc-td3 (the shipped recipe): DWA demonstrations, behaviour cloning and a"
@@ -118,8 +118,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bc-alpha", type=positive_float, default=None, metavar="ALPHA",
                    help="TD3+BC: keep the actor near DWA's choice during TD3, actor loss"
                         " -ALPHA*Q/mean|Q| + (action - DWA's)^2 (sim_stub/train/td3_bc.py; the"
-                        " TD3+BC paper uses 2.5, smaller stays closer to DWA); needs a spec with a"
-                        " dwa block (default: plain TD3)")
+                        " TD3+BC paper uses 2.5, smaller stays closer to DWA; default: plain TD3)")
 
 
 def reward_config(args: argparse.Namespace) -> RewardConfig:
@@ -150,7 +149,6 @@ def run_train(args: argparse.Namespace) -> dict[str, Any]:
     from sim_stub.train.vec_env import make_vec_env
 
     spec = load_spec(args.spec)
-    bc_teacher(args, spec)  # refused here, before the run directory is made
     reward = reward_config(args)
     loaded = load_config(args.config, args.overrides)
     for name in args.scenarios:
@@ -173,7 +171,7 @@ def run_train(args: argparse.Namespace) -> dict[str, Any]:
                        noise=args.noise, crowd=args.crowd, surround_people=args.surround_people,
                        reward=reward,
                        monitor_path=out / "monitor.csv")
-    model = make_td3(env, args, spec)
+    model = make_td3(env, args)
     t0 = time.monotonic()
     start = _start(model, args, out) if args.recipe == "bc-td3" else {}
     # SB3 stops at the first whole VecEnv step at or past --steps
@@ -232,39 +230,18 @@ def _start(model: Any, args: argparse.Namespace, out: Path) -> dict[str, Any]:
                              "critic_warmup": round(t3 - t2, 1)}}
 
 
-def teacher_columns(spec: ObsSpec) -> tuple[int, int] | None:
-    """(start, stop) of DWA's best (v, ω) in the spec's observation, in the actor's [-1, 1]
-    action box (the `dwa` block's first two features), or None without a `dwa` block."""
-    for kind, start, _ in spec.layout():
-        if kind == "dwa":
-            return start, start + 2
-    return None
-
-
-def bc_teacher(args: argparse.Namespace, spec: ObsSpec) -> tuple[int, int] | None:
-    """The columns --bc-alpha keeps the actor near (`teacher_columns`), None without
-    --bc-alpha; a spec whose observation does not hold DWA's choice is refused."""
-    if args.bc_alpha is None:
-        return None
-    teacher = teacher_columns(spec)
-    if teacher is None:
-        raise UserError(f"--bc-alpha: the spec {spec.name!r} has no dwa block, so its"
-                        " observations do not hold DWA's choice to stay near")
-    return teacher
-
-
-def make_td3(env: Any, args: argparse.Namespace, spec: ObsSpec) -> Any:
-    """TD3 as `safemove train` runs it on `env` (a VecEnv of `spec`'s observations): one
-    gradient step per transition collected (gradient_steps=-1), whatever the number of envs;
-    TD3+BC on DWA's choice with --bc-alpha."""
+def make_td3(env: Any, args: argparse.Namespace) -> Any:
+    """TD3 as `safemove train` runs it on `env` (a VecEnv of SafeMoveEnv): one gradient step per
+    transition collected (gradient_steps=-1), whatever the number of envs; TD3+BC on DWA's
+    choice with --bc-alpha. The replay buffer keeps DWA's choice with every transition."""
     import numpy as np
     from stable_baselines3 import TD3
     from stable_baselines3.common.noise import NormalActionNoise
 
-    from sim_stub.train.replay import RewardRankedReplayBuffer
+    from sim_stub.train.replay import RewardRankedReplayBuffer, TeacherReplayBuffer
     from sim_stub.train.td3_bc import TD3BC
 
-    replay = RewardRankedReplayBuffer if args.replay == "rmax" else None
+    replay = RewardRankedReplayBuffer if args.replay == "rmax" else TeacherReplayBuffer
     settings: dict[str, Any] = {
         "learning_rate": args.learning_rate, "replay_buffer_class": replay,
         "learning_starts": args.learning_starts, "batch_size": args.batch_size,
@@ -272,10 +249,9 @@ def make_td3(env: Any, args: argparse.Namespace, spec: ObsSpec) -> Any:
         "action_noise": NormalActionNoise(np.zeros(2), np.full(2, args.action_noise)),
         "policy_kwargs": {"net_arch": list(args.net)}, "seed": args.seed, "device": "cpu",
         "verbose": 0}
-    teacher = bc_teacher(args, spec)
-    if teacher is None:
+    if args.bc_alpha is None:
         return TD3("MlpPolicy", env, **settings)
-    return TD3BC("MlpPolicy", env, bc_alpha=args.bc_alpha, teacher=teacher, **settings)
+    return TD3BC("MlpPolicy", env, bc_alpha=args.bc_alpha, **settings)
 
 
 def _export(model: Path, spec_path: Path, onnx_path: Path) -> dict[str, Any]:

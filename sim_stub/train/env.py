@@ -18,6 +18,9 @@ cost, a bonus on success, a penalty on collision (any: the crowd may be obliviou
 learnt policy should keep away from people even when a contact would not be its fault), and a
 penalty each cycle the shield changed the actor's command, so the actor learns to propose what
 the shield passes.
+
+Each step's info also gives the DWA baseline's choice in the observation the step acted on
+(`TEACHER_KEY`, in SB3's [-1, 1] action box): the replay buffer keeps it as TD3+BC's label.
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ from runtime.jobs.safemove import SafeMoveJob
 from runtime.pipeline import Pipeline, Sensed
 from runtime.policy.obs_spec import ObsSpec
 from sim_stub.lockstep import LockstepEpisode
+from sim_stub.train.replay import TEACHER_KEY
 from sim_stub.train.reward import RewardConfig, corridor_yaw_error, step_reward
 from sim_stub.world import World
 
@@ -97,6 +101,7 @@ class SafeMoveEnv(gym.Env):
         if (self._episode is None or self._job is None or self._pipeline is None
                 or self._sensed is None):
             raise RuntimeError("step() before reset(), or after the episode ended")
+        teacher = self._dwa_choice().astype(F32)  # TD3+BC's label for this observation
         out = self._pipeline.finish(self._sensed, np.asarray(action, dtype=F32))
         changed = self._job.shield_changed
         self._episode.send(out.command)
@@ -115,7 +120,8 @@ class SafeMoveEnv(gym.Env):
             obs = np.zeros(self.observation_space.shape, dtype=F32)
         world = self._episode.world
         info = {"outcome": outcome, "shield_changed": changed,
-                "at_fault": bool(world.outcome.at_fault), "time_s": self._t}
+                "at_fault": bool(world.outcome.at_fault), "time_s": self._t,
+                TEACHER_KEY: teacher}
         return obs, float(reward), terminated, truncated, info
 
     @property
@@ -147,13 +153,18 @@ class SafeMoveEnv(gym.Env):
         of the spec's box: the demonstrations and behaviour cloning of the training recipe.
         The DWA stage runs every planning cycle whatever the spec, so this exists for `drl`
         too; a reversing DWA sample clips to the box's standstill."""
+        unit = self._dwa_choice()
+        a = self.obs_spec.action
+        lo, hi = np.array(a.output_low), np.array(a.output_high)
+        return (lo + (unit + 1.0) * 0.5 * (hi - lo)).astype(F32)
+
+    def _dwa_choice(self) -> np.ndarray:
+        """DWA's best (v, ω) for the current observation in the [-1, 1]² action space, computed
+        as the `dwa` block's first two features are, so the step's teacher label equals them."""
         if self._sensed is None or self._sensed.prepared is None:
             raise RuntimeError("expert_action() without a current observation")
         v, omega = self._sensed.prepared.context.dwa.best
-        a = self.obs_spec.action
-        unit = np.array(a.normalise(float(v), float(omega)))  # [-1, 1]²
-        lo, hi = np.array(a.output_low), np.array(a.output_high)
-        return (lo + (unit + 1.0) * 0.5 * (hi - lo)).astype(F32)
+        return np.array(self.obs_spec.action.normalise(float(v), float(omega)))
 
     def _true_distance(self) -> float:
         assert self._episode is not None

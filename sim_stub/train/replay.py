@@ -1,6 +1,14 @@
-"""Reward-ranked ("R_max") experience replay: a stable-baselines3 replay buffer for
-`TD3(replay_buffer_class=RewardRankedReplayBuffer, replay_buffer_kwargs={...})`, to compare with
-SB3's uniform ReplayBuffer.
+"""The replay buffers `safemove train` runs: uniform replay that also keeps each transition's
+teacher label (`TeacherReplayBuffer`), and the paper's reward-ranked ("R_max") replay built on it
+(`RewardRankedReplayBuffer`), both stable-baselines3 replay buffers for
+`TD3(replay_buffer_class=…, replay_buffer_kwargs={...})`.
+
+Teacher labels: the env gives, in each step's info under `TEACHER_KEY`, the action the teacher
+(the DWA baseline) would take in the observation the step acted on, in the [-1, 1] box SB3's
+actor and buffer work in. The buffer keeps it beside the transition (NaN where an env gives
+none) and every sample carries it (`LabelledSamples.labels`), so TD3+BC (`td3_bc.py`) has a
+label for every replayed transition, the actor's own included, whether or not the spec's
+observation holds DWA's choice. Uniform sampling draws exactly as SB3's ReplayBuffer does.
 
 Our reading of the paper's R_max replay: the transitions with the highest rewards are replayed
 preferentially, without giving up the rest. Each batch is round(ranked_fraction · batch_size)
@@ -23,18 +31,72 @@ a seeded run is reproducible.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
-from stable_baselines3.common.type_aliases import ReplayBufferSamples
 from stable_baselines3.common.vec_env import VecNormalize
 
+TEACHER_KEY = "teacher_action"
 
-class RewardRankedReplayBuffer(ReplayBuffer):
-    """SB3's ReplayBuffer with batches over-sampling the highest-reward transitions."""
+
+class LabelledSamples(NamedTuple):
+    """SB3's ReplayBufferSamples with the teacher's labels (NaN where none was stored)."""
+
+    observations: th.Tensor
+    actions: th.Tensor
+    next_observations: th.Tensor
+    dones: th.Tensor
+    rewards: th.Tensor
+    discounts: th.Tensor | None
+    labels: th.Tensor
+
+
+class TeacherReplayBuffer(ReplayBuffer):
+    """SB3's uniform ReplayBuffer that keeps each transition's teacher label (module doc)."""
+
+    def __init__(self, buffer_size: int, observation_space: spaces.Space,
+                 action_space: spaces.Space, device: th.device | str = "auto", n_envs: int = 1,
+                 optimize_memory_usage: bool = False, handle_timeout_termination: bool = True
+                 ) -> None:
+        if optimize_memory_usage:  # its slot at `pos` holds no valid transition to sample
+            raise ValueError(f"{type(self).__name__} does not support"
+                             " optimize_memory_usage=True")
+        super().__init__(buffer_size, observation_space, action_space, device, n_envs,
+                         optimize_memory_usage, handle_timeout_termination)
+        self.labels = np.full((self.buffer_size, self.n_envs, self.action_dim), np.nan,
+                              dtype=np.float32)
+
+    def add(self, obs: np.ndarray, next_obs: np.ndarray, action: np.ndarray,
+            reward: np.ndarray, done: np.ndarray, infos: list[dict[str, Any]]) -> None:
+        nan = np.full(self.action_dim, np.nan, dtype=np.float32)
+        self.labels[self.pos] = [info.get(TEACHER_KEY, nan) for info in infos]
+        super().add(obs, next_obs, action, reward, done, infos)
+
+    def _get_samples(self, batch_inds: np.ndarray,  # type: ignore[override]
+                     env: VecNormalize | None = None) -> LabelledSamples:
+        # the env of each row drawn as SB3's ReplayBuffer draws it
+        envs = np.random.randint(0, high=self.n_envs, size=(len(batch_inds),))
+        return self._samples_at(batch_inds, envs, env)
+
+    def _samples_at(self, rows: np.ndarray, envs: np.ndarray,
+                    env: VecNormalize | None) -> LabelledSamples:
+        """The transitions (and labels) at given (row, env) pairs, as SB3's `_get_samples`."""
+        t = self.to_torch
+        return LabelledSamples(
+            observations=t(self._normalize_obs(self.observations[rows, envs, :], env)),
+            actions=t(self.actions[rows, envs, :]),
+            next_observations=t(self._normalize_obs(self.next_observations[rows, envs, :], env)),
+            # a timeout is no terminal state: its value is bootstrapped
+            dones=t((self.dones[rows, envs] * (1 - self.timeouts[rows, envs])).reshape(-1, 1)),
+            rewards=t(self._normalize_reward(self.rewards[rows, envs].reshape(-1, 1), env)),
+            discounts=None, labels=t(self.labels[rows, envs, :]))
+
+
+class RewardRankedReplayBuffer(TeacherReplayBuffer):
+    """Batches over-sampling the highest-reward transitions (the paper's R_max replay)."""
 
     def __init__(self, buffer_size: int, observation_space: spaces.Space,
                  action_space: spaces.Space, device: th.device | str = "auto", n_envs: int = 1,
@@ -49,9 +111,6 @@ class RewardRankedReplayBuffer(ReplayBuffer):
         if refresh_every < 1:
             raise ValueError("RewardRankedReplayBuffer: refresh_every must be at least 1,"
                              f" got {refresh_every}")
-        if optimize_memory_usage:  # its slot at `pos` holds no valid transition to rank
-            raise ValueError("RewardRankedReplayBuffer does not support"
-                             " optimize_memory_usage=True")
         super().__init__(buffer_size, observation_space, action_space, device, n_envs,
                          optimize_memory_usage, handle_timeout_termination)
         self.ranked_fraction = ranked_fraction
@@ -72,7 +131,8 @@ class RewardRankedReplayBuffer(ReplayBuffer):
         self._rows_ranked = 0
         self._adds_since_ranking = 0
 
-    def sample(self, batch_size: int, env: VecNormalize | None = None) -> ReplayBufferSamples:
+    def sample(self, batch_size: int,  # type: ignore[override]
+               env: VecNormalize | None = None) -> LabelledSamples:
         rows_stored = self.buffer_size if self.full else self.pos
         if (len(self._top) == 0
                 or self._adds_since_ranking >= min(self.refresh_every, self._rows_ranked)):
@@ -93,16 +153,3 @@ class RewardRankedReplayBuffer(ReplayBuffer):
         self._top = np.argpartition(rewards, -k)[-k:]
         self._rows_ranked = rows_stored
         self._adds_since_ranking = 0
-
-    def _samples_at(self, rows: np.ndarray, envs: np.ndarray,
-                    env: VecNormalize | None) -> ReplayBufferSamples:
-        """SB3's `_get_samples` at given (row, env) pairs; its own draws the env of each."""
-        data = (
-            self._normalize_obs(self.observations[rows, envs, :], env),
-            self.actions[rows, envs, :],
-            self._normalize_obs(self.next_observations[rows, envs, :], env),
-            # a timeout is no terminal state: its value is bootstrapped
-            (self.dones[rows, envs] * (1 - self.timeouts[rows, envs])).reshape(-1, 1),
-            self._normalize_reward(self.rewards[rows, envs].reshape(-1, 1), env),
-        )
-        return ReplayBufferSamples(*tuple(map(self.to_torch, data)))

@@ -11,10 +11,10 @@ TD3+BC adds a behaviour-cloning term to the actor's loss,
 λ's normaliser is held constant in the gradient (detached), so α alone sets the balance
 whatever the reward's scale: small α keeps the actor on DWA's choice, large α leaves TD3 alone
 (the paper's α is 2.5). Unlike offline TD3+BC, the label is not the action stored in the buffer
-(which carries exploration noise) but DWA's noise-free choice in that state, which the
-observation itself holds: the `dwa` block starts with DWA's best (v, ω) normalised like an
-action, in the [-1, 1] box that SB3's actor outputs. So every replayed transition, the actor's
-own included, has a label, and the specs without a `dwa` block (`drl`) cannot use this.
+(which carries exploration noise) but DWA's noise-free choice in that state, which the env gives
+with every step and the replay buffer keeps beside the transition (`replay.TeacherReplayBuffer`):
+so every replayed transition, the actor's own included, has a label, and all three specs can use
+it, `drl` too, whose observation does not hold DWA's choice.
 
 The critics learn as in TD3 (`critic_update`, also the recipe's critic warm-up).
 """
@@ -30,8 +30,10 @@ from stable_baselines3 import TD3
 from stable_baselines3.common.type_aliases import ReplayBufferSamples
 from stable_baselines3.common.utils import polyak_update
 
+from sim_stub.train.replay import LabelledSamples, TeacherReplayBuffer
 
-def critic_update(model: Any, data: ReplayBufferSamples) -> float:
+
+def critic_update(model: Any, data: ReplayBufferSamples | LabelledSamples) -> float:
     """One TD3 critic step on a minibatch (clipped double Q, target policy smoothing); returns
     the loss. The target networks are not moved here."""
     discounts = data.discounts if data.discounts is not None else model.gamma
@@ -54,28 +56,30 @@ def critic_update(model: Any, data: ReplayBufferSamples) -> float:
 class TD3BC(TD3):
     """SB3's TD3 with the behaviour-cloning term on DWA's choice in the actor's loss.
 
-    `bc_alpha` is α above; `teacher` the (start, stop) columns of DWA's choice in the
-    observation (`sim_stub.train.cli.teacher_columns`). Both have defaults only because SB3's
-    `load` builds the model without arguments and then restores the saved ones."""
+    `bc_alpha` is α above (a default only because SB3's `load` builds the model without
+    arguments and then restores the saved one). The replay buffer must keep teacher labels:
+    `TeacherReplayBuffer` (the default here) or a subclass."""
 
-    def __init__(self, *args: Any, bc_alpha: float = 2.5, teacher: tuple[int, int] | None = None,
-                 **kwargs: Any) -> None:
+    def __init__(self, *args: Any, bc_alpha: float = 2.5, **kwargs: Any) -> None:
         if not bc_alpha > 0.0:
             raise ValueError(f"bc_alpha must be > 0, got {bc_alpha}")
         self.bc_alpha = bc_alpha
-        self.teacher = teacher
+        if kwargs.get("replay_buffer_class") is None:
+            kwargs["replay_buffer_class"] = TeacherReplayBuffer
+        elif not issubclass(kwargs["replay_buffer_class"], TeacherReplayBuffer):
+            raise ValueError("TD3BC needs a replay buffer that keeps teacher labels"
+                             f" (TeacherReplayBuffer), got {kwargs['replay_buffer_class']}")
         super().__init__(*args, **kwargs)
 
-    def actor_loss(self, observations: th.Tensor) -> tuple[th.Tensor, float]:
+    def actor_loss(self, observations: th.Tensor, labels: th.Tensor) -> tuple[th.Tensor, float]:
         """TD3+BC's actor loss on a minibatch and its cloning part (mean squared error)."""
-        if self.teacher is None:
-            raise RuntimeError("TD3BC needs the columns of DWA's choice (teacher=)")
-        start, stop = self.teacher
-        label = observations[:, start:stop].clamp(-1.0, 1.0)
+        if th.isnan(labels).any():
+            raise RuntimeError("TD3BC: a replayed transition has no teacher label (the env"
+                               " gave no info['teacher_action'])")
         action = self.actor(observations)
         q = self.critic.q1_forward(observations, action)
         lam = self.bc_alpha / q.abs().mean().detach().clamp_min(1e-6)
-        bc = F.mse_loss(action, label)
+        bc = F.mse_loss(action, labels.clamp(-1.0, 1.0))
         return -lam * q.mean() + bc, float(bc.item())
 
     def train(self, gradient_steps: int, batch_size: int = 100) -> None:
@@ -86,10 +90,11 @@ class TD3BC(TD3):
             self._n_updates += 1
             data = self.replay_buffer.sample(  # type: ignore[union-attr]
                 batch_size, env=self._vec_normalize_env)
+            assert isinstance(data, LabelledSamples)  # __init__ made it a TeacherReplayBuffer
             critic_losses.append(critic_update(self, data))
             if self._n_updates % self.policy_delay:
                 continue  # TD3's delayed policy update
-            loss, bc = self.actor_loss(data.observations)
+            loss, bc = self.actor_loss(data.observations, data.labels)
             self.actor.optimizer.zero_grad()
             loss.backward()
             self.actor.optimizer.step()
