@@ -101,8 +101,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="project reward: the penalty for each cycle the shield changed the"
                         f" actor's command (default {RewardConfig().shield_change})")
     p.add_argument("--replay", choices=REPLAYS, default="uniform",
-                   help="uniform: drawn as SB3's replay buffer draws; rmax: the paper's reward-ranked replay,"
-                        " half of each batch from the top-rewarded tenth (default uniform)")
+                   help="uniform: drawn as SB3's replay buffer draws; rmax: the paper's"
+                        " reward-ranked replay, half of each batch from the top-rewarded tenth"
+                        " (default uniform)")
     p.add_argument("--recipe", choices=RECIPES, default="bc-td3",
                    help="bc-td3 (the shipped recipe): DWA demonstrations, behaviour cloning and a"
                         " critic warm-up before TD3 (sim_stub/train/recipe.py); td3: TD3 from"

@@ -162,7 +162,7 @@ class SafeMoveEnv(gym.Env):
         """DWA's best (v, ω) for the current observation in the [-1, 1]² action space, computed
         as the `dwa` block's first two features are, so the step's teacher label equals them."""
         if self._sensed is None or self._sensed.prepared is None:
-            raise RuntimeError("expert_action() without a current observation")
+            raise RuntimeError("DWA's choice asked for without a current observation")
         v, omega = self._sensed.prepared.context.dwa.best
         return np.array(self.obs_spec.action.normalise(float(v), float(omega)))
 
