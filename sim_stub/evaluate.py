@@ -33,7 +33,9 @@ import numpy as np
 
 from drivers.depth_source import D435_HFOV_DEG
 from runtime.config.settings import LoadedConfig, load_config
+from runtime.jobs.trained_settings import trained_settings_report
 from runtime.pipeline import Pipeline
+from runtime.policy.actor import Policy
 from runtime.policy.shipped import variant_of
 from runtime.process.cycle_record import CycleRecord
 from runtime.process.recorder import Recorder, recording_metadata
@@ -248,7 +250,13 @@ def evaluate(scenarios: list[str], episodes: int, seed: int, settings: EvalSetti
     commit = source_commit()  # the code that runs, taken before it does
     for name in scenarios:
         load_scenario(name)  # a bad name or file fails here, once, with its message
-    load_config(settings.config_path, list(settings.overrides))
+    loaded = load_config(settings.config_path, list(settings.overrides))
+    model = settings.model if settings.planner == "safemove" else None
+    trained = None
+    if model is not None:  # a bad model refuses here, once, before any episode
+        policy = Policy(model, loaded.config.policy)
+        trained = trained_settings_report(policy.training, loaded.config)
+        trained.log(str(model))
     tasks = [(name, seed + i, settings) for name in scenarios for i in range(episodes)]
     results: list[EpisodeResult] = []
     if jobs <= 1:
@@ -265,7 +273,6 @@ def evaluate(scenarios: list[str], episodes: int, seed: int, settings: EvalSetti
             results = [f.result() for f in futures]
     if trajectories is not None:
         trajectories.extend(r.trajectory for r in results)
-    model = settings.model if settings.planner == "safemove" else None
     return {
         "commit": commit,
         "planner": settings.planner,
@@ -278,6 +285,8 @@ def evaluate(scenarios: list[str], episodes: int, seed: int, settings: EvalSetti
         "surround_people": settings.surround_people,
         "config": None if settings.config_path is None else str(settings.config_path),
         "overrides": list(settings.overrides),
+        # the settings that shape the policy's loop where they differ from its training's
+        "trained_settings": None if trained is None else trained.as_dict(),
         "scenarios": {name: summarise([r for r in results if r.scenario == name])
                       for name in scenarios},
         "episodes": [r.episode_dict() for r in results],

@@ -16,6 +16,7 @@ from runtime.cli.main import main
 from runtime.config.settings import load_config
 from runtime.errors import UserError
 from runtime.jobs.safemove import SafeMoveJob
+from runtime.jobs.trained_settings import trained_settings_report
 from runtime.policy import shipped
 from runtime.policy.actor import Policy, PolicyConfig
 from sim_stub.bench_episode import write_random_actor
@@ -65,6 +66,16 @@ def test_each_shipped_model_is_an_actor_of_its_own_spec():
     for variant in shipped.shipped_variants():
         policy = Policy(shipped.shipped_model(variant), PolicyConfig(warmup_runs=1))
         assert policy.spec.name == variant
+
+
+def test_each_shipped_model_runs_on_the_settings_it_was_trained_with():
+    """The shipped config is the one its policies learnt in: no warning on a plain run."""
+    config = load_config().config
+    for variant in shipped.shipped_variants():
+        policy = Policy(shipped.shipped_model(variant), PolicyConfig(warmup_runs=1))
+        report = trained_settings_report(policy.training, config)
+        assert report.basis is not None, variant
+        assert report.differences == (), (variant, report.differences)
 
 
 @pytest.mark.parametrize(
@@ -156,6 +167,8 @@ def test_eval_runs_a_shipped_variant_and_names_it(models, tiny_room, capsys):
     result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert result["variant"] == "safemove"
     assert result["model"] == str(models / "safemove.onnx")
+    # a random actor has no training record: nothing to compare its settings with
+    assert result["trained_settings"] == {"basis": None, "differences": [], "unmatched": []}
     assert result["scenarios"][tiny_room]["episodes"] == 1
     (episode,) = result["episodes"]
     assert episode["cycles"] <= 25
@@ -195,6 +208,7 @@ def test_ship_installs_the_run_with_its_records(models, tiny_room, tmp_path, cap
     # which code evaluated it, with which camera
     assert table["commit"] == json.loads(result.read_text())["commit"]
     assert table["camera_hfov_deg"] == 87.0
+    assert table["overrides"] == [] and table["trained_settings"]["basis"] is None
     assert shipped.shipped_variants() == ["safemove"]
 
 

@@ -66,9 +66,11 @@ def run(args: argparse.Namespace) -> int:
                         " or a control socket for goals (control.socket)")
     policy = None
     if model is not None:
+        from runtime.jobs.trained_settings import trained_settings_report
         from runtime.policy.actor import Policy
 
         policy = Policy(model, cfg.policy)  # validated and warmed up before the base opens
+        trained_settings_report(policy.training, cfg).log(str(model))
     if args.goal is not None:
         job: Any = _planner_job(tuple(args.goal), cfg, policy, time.monotonic)
         report, link_stats = run_job(loaded, job)

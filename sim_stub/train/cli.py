@@ -40,6 +40,7 @@ from runtime.cli.args import (
 )
 from runtime.config.settings import load_config
 from runtime.errors import UserError
+from runtime.jobs.trained_settings import RECORD_KEY, decision_settings
 from runtime.policy.obs_spec import PRESETS, load_spec
 from sim_stub.progress import Progress
 from sim_stub.provenance import source_commit
@@ -145,8 +146,10 @@ def run_train(args: argparse.Namespace) -> dict[str, Any]:
     import numpy as np
     from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback
 
+    from export.ship import stamp
     from sim_stub.train.callbacks import ProgressCallback
     from sim_stub.train.curves import plot_curves
+    from sim_stub.train.ship import training_record
     from sim_stub.train.vec_env import make_vec_env
 
     spec = load_spec(args.spec)
@@ -202,10 +205,12 @@ def run_train(args: argparse.Namespace) -> dict[str, Any]:
     # how the run was made, beside what it made: the record a shipped policy carries
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()
                 if k != "func"}
-    (out / "summary.json").write_text(
-        json.dumps({**summary, "settings": settings, "reward": asdict(reward), "commit": commit},
-                   indent=1),
-        encoding="utf-8")
+    record = {**summary, "settings": settings, "reward": asdict(reward), "commit": commit,
+              RECORD_KEY: decision_settings(loaded.config)}
+    (out / "summary.json").write_text(json.dumps(record, indent=1), encoding="utf-8")
+    # the actor says how it was made before it is evaluated or shipped (`safemove ship`
+    # replaces the record with the same and adds the evaluations)
+    stamp(out / "actor.onnx", training_record(record), {"tables": []})
     return summary
 
 

@@ -46,10 +46,16 @@ def evaluation_record(result: dict[str, Any], source: Path) -> dict[str, Any]:
                                   "scenarios": scenarios}
     except (KeyError, TypeError, AttributeError) as exc:
         raise UserError(f"{source}: not a `safemove eval --json` result (missing {exc})") from None
-    # what evaluated it, where the result says (results before these fields have none)
-    record.update({k: result[k] for k in ("commit", "camera_hfov_deg", "surround_people")
-                   if k in result})
+    # what evaluated it and with which settings, where the result says (results before these
+    # fields have none): figures measured with --set overrides are not the default's
+    record.update({k: result[k] for k in ("commit", "camera_hfov_deg", "surround_people",
+                                          "overrides", "trained_settings") if k in result})
     return record
+
+
+def training_record(summary: dict[str, Any]) -> dict[str, Any]:
+    """A run's summary as its actor carries it: without this machine's paths."""
+    return {k: summary[k] for k in summary if k not in ("run", "model", "actor")}
 
 
 def same_graph(model: Path, actor: Path) -> bool:
@@ -105,8 +111,7 @@ def ship(run_dir: Path, evaluations: list[Path]) -> Path:
     partial = target.with_suffix(".onnx.partial")
     shutil.copyfile(actor, partial)
     try:
-        stamp(partial, {k: summary[k] for k in summary if k not in ("run", "model", "actor")},
-              {"tables": records})
+        stamp(partial, training_record(summary), {"tables": records})
         os.replace(partial, target)
     finally:
         partial.unlink(missing_ok=True)  # a stamp that failed leaves nothing in the package
