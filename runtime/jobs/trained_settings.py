@@ -112,13 +112,6 @@ def _trained_values(training: dict[str, Any] | None) -> tuple[dict[str, Any] | N
     return decision_settings(config), basis + (" with " + ", ".join(overrides) if overrides else "")
 
 
-def _same(a: Any, b: Any) -> bool:
-    if isinstance(a, (int, float)) and isinstance(b, (int, float)) \
-            and not isinstance(a, bool) and not isinstance(b, bool):
-        return float(a) == float(b)
-    return bool(a == b)
-
-
 def trained_settings_report(training: dict[str, Any] | None,
                             config: Config) -> TrainedSettingsReport:
     """Compare an actor's training record (`Policy.training`) with the running config."""
@@ -127,6 +120,6 @@ def trained_settings_report(training: dict[str, Any] | None,
         return TrainedSettingsReport(None)
     running = decision_settings(config)
     differences = tuple(Difference(k, trained[k], running[k]) for k in running
-                        if k in trained and not _same(trained[k], running[k]))
+                        if k in trained and trained[k] != running[k])
     unmatched = tuple(sorted(set(trained) ^ set(running)))
     return TrainedSettingsReport(basis, differences, unmatched)
