@@ -128,7 +128,7 @@ def test_train_writes_a_model_and_an_actor_that_eval_runs(tmp_path, safemove):
     run = safemove(["train", "-o", str(out), "--steps", "120", "--learning-starts", "60",
                     "--batch-size", "32", "--scenarios", room, "--checkpoint-every", "100",
                     "--no-noise", "--net", "64", "64", "--envs", "1", "--recipe", "td3",
-                    "--set", "dwa.weight_evasion=3.0"])
+                    "--set", "dwa.weight_evasion=1.5"])
     assert run.wait(timeout=300) == 0, run.stderr[-3000:]
     summary = json.loads(run.stdout.strip().splitlines()[-1])
     # the Monitor's episodes (summary) and its file (outcomes) agree, one row per episode
@@ -145,10 +145,10 @@ def test_train_writes_a_model_and_an_actor_that_eval_runs(tmp_path, safemove):
     assert result["scenarios"][room]["episodes"] == 1
     # the run records the settings it trained with; eval, run without its --set, says so
     record = json.loads((out / "summary.json").read_text())["decision_settings"]
-    assert record["dwa.weight_evasion"] == 3.0 and record["loop.control_hz"] == 20.0
+    assert record["dwa.weight_evasion"] == 1.5 and record["loop.control_hz"] == 20.0
     assert result["trained_settings"]["differences"] == [
-        {"key": "dwa.weight_evasion", "trained": 3.0, "running": 0.0}]
-    assert "trained with dwa.weight_evasion=3.0, running with 0.0" in evaluated.stderr
+        {"key": "dwa.weight_evasion", "trained": 1.5, "running": 3.0}]
+    assert "trained with dwa.weight_evasion=1.5, running with 3.0" in evaluated.stderr
     again = safemove(["train", "-o", str(out), "--steps", "10", "--scenarios", room])
     assert again.wait(timeout=120) == 2
     assert "td3.zip: exists" in again.stderr and "Traceback" not in again.stderr

@@ -42,7 +42,7 @@ def test_a_record_equal_to_the_running_config_reports_nothing(caplog):
 def test_each_differing_key_is_one_warning_naming_both_values(caplog):
     training = {RECORD_KEY: decision_settings(_config("dwa.weight_evasion=3.0",
                                                       "robot.radius_m=0.2"))}
-    report = trained_settings_report(training, _config())
+    report = trained_settings_report(training, _config("dwa.weight_evasion=0.0"))
     assert [d.as_dict() for d in report.differences] == [
         {"key": "robot.radius_m", "trained": 0.2, "running": 0.17},
         {"key": "dwa.weight_evasion", "trained": 3.0, "running": 0.0}]
@@ -55,9 +55,10 @@ def test_each_differing_key_is_one_warning_naming_both_values(caplog):
 
 
 def test_an_integer_and_the_same_float_are_the_same_value():
-    record = decision_settings(_config())
-    record["dwa.weight_evasion"] = 0  # JSON writes 0.0 as 0 in some writers
-    assert trained_settings_report({RECORD_KEY: record}, _config()).differences == ()
+    record = decision_settings(_config("dwa.weight_evasion=2.0"))
+    record["dwa.weight_evasion"] = 2  # JSON writes 2.0 as 2 in some writers
+    running = _config("dwa.weight_evasion=2.0")
+    assert trained_settings_report({RECORD_KEY: record}, running).differences == ()
 
 
 def test_keys_only_one_side_has_are_listed_not_compared(caplog):
@@ -74,11 +75,11 @@ def test_keys_only_one_side_has_are_listed_not_compared(caplog):
 
 
 def test_an_older_record_is_compared_as_todays_defaults_with_its_overrides():
-    training = {"settings": {"config": None, "overrides": ["dwa.weight_evasion=3.0"]}}
+    training = {"settings": {"config": None, "overrides": ["dwa.weight_evasion=1.5"]}}
     report = trained_settings_report(training, _config())
-    assert "today's defaults with dwa.weight_evasion=3.0" in str(report.basis)
+    assert "today's defaults with dwa.weight_evasion=1.5" in str(report.basis)
     assert [d.key for d in report.differences] == ["dwa.weight_evasion"]
-    same = trained_settings_report(training, _config("dwa.weight_evasion=3"))
+    same = trained_settings_report(training, _config("dwa.weight_evasion=1.5"))
     assert same.differences == ()
 
 

@@ -29,11 +29,11 @@ toward anything within the clearance cap. Raw terms of one sample:
 - evasion   = max(−evasion_cap, min over walking tracks of their gap) ≤ 0: how deep the predicted
   disc of a person walking (a track whose predicted centre moves) overlaps the rollout, or the
   robot standing at the rollout's end while the person walks on at the same velocity for another
-  horizon (braking or backing off only puts the meeting past the horizon; it is no escape). Off
-  by default (weight 0). Fox et al.'s admissibility counts a sample admissible when it can stop
-  before its first collision, which a standing robot always can: standing in the path of a
-  person who does not see it scores as well as stepping aside (clearance is 0 for both), and the
-  robot stops before the person and is walked into. With this term the deeper overlap costs
+  horizon (braking or backing off only puts the meeting past the horizon; it is no escape). On
+  by default (ε = 3; 0 is Fox et al.'s DWA). Fox et al.'s admissibility counts a sample
+  admissible when it can stop before its first collision, which a standing robot always can:
+  standing in the path of a person who does not see it scores as well as stepping aside
+  (clearance is 0 for both), and the robot stops before the person and is walked into. With this term the deeper overlap costs
   more, so the robot turns off the person's line cycle by cycle while the person is still
   seconds away (one cycle's window holds only a little turn).
 Admissible (Fox et al.): the sample can stop before its first colliding step:

@@ -29,7 +29,7 @@ class DWAConfig:
     weight_velocity: float = setting(2.0, "γ: weight of the velocity term", min=0.0)
     weight_density: float = setting(0.2, "δ: weight of the density penalty", min=0.0)
     weight_evasion: float = setting(
-        0.0, "ε: weight of the evasion penalty, how deep a walking person's predicted disc"
+        3.0, "ε: weight of the evasion penalty, how deep a walking person's predicted disc"
         " overlaps the sample's rollout, or the robot standing at its end while they walk on"
         " for another horizon (0: off, Fox et al.'s DWA)", min=0.0)
     evasion_cap_m: float = setting(1.0, "σ of the evasion term: the overlap depth that counts as"
