@@ -33,9 +33,9 @@ toward anything within the clearance cap. Raw terms of one sample:
   by default (ε = 3; 0 is Fox et al.'s DWA). Fox et al.'s admissibility counts a sample
   admissible when it can stop before its first collision, which a standing robot always can:
   standing in the path of a person who does not see it scores as well as stepping aside
-  (clearance is 0 for both), and the robot stops before the person and is walked into. With this term the deeper overlap costs
-  more, so the robot turns off the person's line cycle by cycle while the person is still
-  seconds away (one cycle's window holds only a little turn).
+  (clearance is 0 for both), and the robot stops before the person and is walked into. With
+  this term the deeper overlap costs more, so the robot turns off the person's line cycle by
+  cycle while the person is still seconds away (one cycle's window holds only a little turn).
 Admissible (Fox et al.): the sample can stop before its first colliding step:
 v² ≤ 2·decel_max·s_free, s_free = |v|·(time of the last step before the first collision).
 A collision later than that only lowers the clearance term.
