@@ -78,6 +78,25 @@ def test_each_shipped_model_runs_on_the_settings_it_was_trained_with():
         assert report.differences == (), (variant, report.differences)
 
 
+def test_each_shipped_model_was_trained_with_the_train_commands_defaults():
+    """`safemove train -o RUN --spec VARIANT` is the shipped recipe: every setting a shipped
+    policy's record holds, bar where it was written and the config (checked above), is the
+    command's default."""
+    import argparse
+
+    from sim_stub.train.cli import add_arguments, bc_alpha
+
+    not_recipe = {"log_level", "command", "config", "overrides", "output", "json"}
+    for variant in shipped.shipped_variants():
+        trained = Policy(shipped.shipped_model(variant), PolicyConfig(warmup_runs=1)).training
+        parser = argparse.ArgumentParser()
+        add_arguments(parser)
+        args = parser.parse_args(["-o", "run", "--spec", variant])
+        defaults = {**vars(args), "bc_alpha": bc_alpha(args)}
+        recipe = {k: v for k, v in trained["settings"].items() if k not in not_recipe}
+        assert recipe == {k: defaults[k] for k in recipe}, variant
+
+
 @pytest.mark.parametrize(
     ("args", "needles"),
     [

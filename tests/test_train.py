@@ -144,7 +144,9 @@ def test_train_writes_a_model_and_an_actor_that_eval_runs(tmp_path, safemove):
     result = json.loads(evaluated.stdout.strip().splitlines()[-1])
     assert result["scenarios"][room]["episodes"] == 1
     # the run records the settings it trained with; eval, run without its --set, says so
-    record = json.loads((out / "summary.json").read_text())["decision_settings"]
+    summary_record = json.loads((out / "summary.json").read_text())
+    assert summary_record["settings"]["bc_alpha"] is None  # --recipe td3: plain TD3
+    record = summary_record["decision_settings"]
     assert record["dwa.weight_evasion"] == 1.5 and record["loop.control_hz"] == 20.0
     assert result["trained_settings"]["differences"] == [
         {"key": "dwa.weight_evasion", "trained": 1.5, "running": 3.0}]

@@ -123,20 +123,27 @@ def test_alpha_must_pull_and_every_transition_have_a_label():
 
 
 @pytest.mark.parametrize("preset", ["safemove", "drl_dwa", "drl"])
-def test_make_td3_keeps_labels_and_builds_td3_bc_only_when_asked(preset):
+def test_make_td3_keeps_labels_and_builds_td3_bc_unless_off(preset):
     parser = argparse.ArgumentParser()
     add_arguments(parser)
     env = DummyVecEnv([LabelledEnv])
-    plain = make_td3(env, parser.parse_args(["-o", "run", "--spec", preset, "--net", "8"]))
-    assert type(plain).__name__ == "TD3"
-    assert isinstance(plain.replay_buffer, TeacherReplayBuffer)
-    with_bc = make_td3(env, parser.parse_args(["-o", "run", "--spec", preset, "--net", "8",
-                                               "--bc-alpha", "2.5", "--replay", "rmax"]))
-    assert isinstance(with_bc, TD3BC) and with_bc.bc_alpha == 2.5
+
+    def model(*extra):
+        return make_td3(env, parser.parse_args(["-o", "run", "--spec", preset, "--net", "8",
+                                                *extra]))
+
+    shipped = model()  # the bc-td3 recipe's default: TD3+BC at 2.5
+    assert isinstance(shipped, TD3BC) and shipped.bc_alpha == 2.5
+    assert isinstance(shipped.replay_buffer, TeacherReplayBuffer)
+    for plain in (model("--bc-alpha", "off"), model("--recipe", "td3")):
+        assert type(plain).__name__ == "TD3"
+        assert isinstance(plain.replay_buffer, TeacherReplayBuffer)
+    with_bc = model("--recipe", "td3", "--bc-alpha", "1", "--replay", "rmax")
+    assert isinstance(with_bc, TD3BC) and with_bc.bc_alpha == 1.0
     assert isinstance(with_bc.replay_buffer, RewardRankedReplayBuffer)
 
 
-@pytest.mark.parametrize("alpha", ["0", "-1", "nan"])
+@pytest.mark.parametrize("alpha", ["0", "-1", "nan", "Off"])
 def test_train_refuses_an_alpha_that_does_not_pull(tmp_path, safemove, alpha):
     run = safemove(["train", "-o", str(tmp_path / "run"), "--bc-alpha", alpha])
     assert run.wait(timeout=120) == 2

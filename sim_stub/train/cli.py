@@ -9,9 +9,11 @@ and `bc.zip` after the bc-td3 recipe's cloning and critic warm-up), `td3.zip` (t
 import torch, gymnasium or stable-baselines3 (the robot image has none); running it does, and
 says how to install them when they are missing.
 
-The episodes run in --envs worker processes (`vec_env.make_vec_env`), one per core by default,
-so the simulation is shared out; the gradient steps stay in this process, between VecEnv steps.
-Each VecEnv step collects one transition per env and is followed by as many gradient steps
+Its defaults are the shipped recipe (README, Training): `safemove train -o RUN --spec VARIANT
+--seed 0` trains as the shipped policies were trained. The episodes run in --envs worker
+processes (`vec_env.make_vec_env`), so the simulation is shared out; the gradient steps stay in
+this process, between VecEnv steps. Each VecEnv step collects one transition per env and is
+followed by as many gradient steps
 (gradient_steps=-1): the update-to-data ratio stays one whatever N is, which also means that
 past --learning-starts the gradient steps bound the rate more than the simulation does. A run
 is reproducible from (--seed, --envs); the same seed with another N gives other episodes.
@@ -24,7 +26,6 @@ import csv
 import json
 import logging
 import math
-import os
 import time
 from collections import Counter
 from dataclasses import asdict
@@ -47,9 +48,34 @@ from sim_stub.provenance import source_commit
 from sim_stub.scenario import CROWD_MODES, load_scenario
 from sim_stub.train.reward import KINDS, RewardConfig
 
-DEFAULT_SCENARIOS = ("paper_a", "paper_b", "paper_c", "paper_d")
+# The shipped recipe is the default: `safemove train -o RUN --spec VARIANT` trains the shipped
+# policies' way (README, Training).
+SHIPPED_SCENARIOS = ("paper_cal_a", "paper_cal_b", "paper_cal_c", "paper_cal_d",
+                     "paper_a", "paper_b", "paper_c", "paper_d")
+SHIPPED_BC_ALPHA = 2.5  # TD3+BC's α with the bc-td3 recipe (Fujimoto & Gu's value)
+SHIPPED_ENVS = 2  # the episodes repeat from (--seed, --envs), so the recipe fixes both
 RECIPES = ("bc-td3", "td3")
 REPLAYS = ("uniform", "rmax")
+
+
+def alpha_or_off(text: str) -> float | str:
+    """argparse type of --bc-alpha: a weight above 0, or "off" (plain TD3)."""
+    if text == "off":
+        return text
+    try:
+        return positive_float(text)
+    except argparse.ArgumentTypeError as exc:
+        raise argparse.ArgumentTypeError(f"{exc} (a weight above 0, or off)") from None
+
+
+def bc_alpha(args: argparse.Namespace) -> float | None:
+    """TD3+BC's α the command line asks for; None: plain TD3. Unset, the recipe decides:
+    SHIPPED_BC_ALPHA after bc-td3's demonstrations, plain TD3 with --recipe td3."""
+    if args.bc_alpha == "off":
+        return None
+    if args.bc_alpha is None:
+        return SHIPPED_BC_ALPHA if args.recipe == "bc-td3" else None
+    return float(args.bc_alpha)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -59,23 +85,25 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--spec", default="safemove", metavar="PRESET|FILE.json",
                    help=f"observation spec: a preset ({', '.join(PRESETS)}) or a spec JSON file"
                         " (default safemove)")
-    p.add_argument("--scenarios", nargs="+", default=list(DEFAULT_SCENARIOS),
-                   help="scenarios episodes are drawn from (default: the four paper ones)")
-    p.add_argument("--crowd", choices=(*CROWD_MODES, "mixed"), default="scenario",
-                   help="whether the people see the robot (default: as the scenario says;"
-                        " mixed: each episode draws reactive or oblivious)")
+    p.add_argument("--scenarios", nargs="+", default=list(SHIPPED_SCENARIOS),
+                   help="scenarios episodes are drawn from (default: the calibrated and the"
+                        " dense paper ones, paper_cal_a-d and paper_a-d)")
+    p.add_argument("--crowd", choices=(*CROWD_MODES, "mixed"), default="mixed",
+                   help="whether the people see the robot (scenario: as the scenario says;"
+                        " mixed: each episode draws reactive or oblivious; default mixed)")
     p.add_argument("--surround-people", action="store_true",
                    help="what if the robot saw every person around it: train with the people"
                         " all around as tracks from ground truth (as eval --surround-people);"
                         " such a run cannot ship, no robot has that sensor")
-    p.add_argument("--steps", type=int_at_least(1), default=200_000,
-                   help="environment steps (control cycles) to train (default 200000)")
+    p.add_argument("--steps", type=int_at_least(1), default=160_000,
+                   help="TD3's environment steps (control cycles), after the demonstrations"
+                        " (default 160000)")
     p.add_argument("--seed", type=int, default=0,
                    help="seed of the episodes (env i: seed + i) and of TD3")
-    cores = len(os.sched_getaffinity(0))  # the cores this process may run on
-    p.add_argument("--envs", type=int_at_least(1), default=cores,
-                   help="environments, each in its own worker process (default: one per core,"
-                        f" {cores} here)")
+    p.add_argument("--envs", type=int_at_least(1), default=SHIPPED_ENVS,
+                   help="environments, each in its own worker process; another number gives"
+                        " other episodes from the same seed, and past the demonstrations the"
+                        f" gradient steps bound the rate, not the workers (default {SHIPPED_ENVS})")
     p.add_argument("--net", type=int_at_least(1), nargs="+", default=[400, 300],
                    help="hidden layer sizes of actor and critics (default 400 300)")
     p.add_argument("--learning-starts", type=int_at_least(0), default=5_000,
@@ -117,10 +145,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="bc-td3: behaviour-cloning passes over the demonstrations (default 30)")
     p.add_argument("--critic-warmup", type=int_at_least(0), default=5_000,
                    help="bc-td3: critic-only gradient steps before TD3 (default 5000)")
-    p.add_argument("--bc-alpha", type=positive_float, default=None, metavar="ALPHA",
+    p.add_argument("--bc-alpha", type=alpha_or_off, default=None, metavar="ALPHA|off",
                    help="TD3+BC: keep the actor near DWA's choice during TD3, actor loss"
-                        " -ALPHA*Q/mean|Q| + (action - DWA's)^2 (sim_stub/train/td3_bc.py; the"
-                        " TD3+BC paper uses 2.5, smaller stays closer to DWA; default: plain TD3)")
+                        " -ALPHA*Q/mean|Q| + (action - DWA's)^2 (sim_stub/train/td3_bc.py);"
+                        " smaller stays closer to DWA; off: plain TD3 (default"
+                        f" {SHIPPED_BC_ALPHA} with bc-td3, as the TD3+BC paper; off with td3)")
 
 
 def reward_config(args: argparse.Namespace) -> RewardConfig:
@@ -205,6 +234,7 @@ def run_train(args: argparse.Namespace) -> dict[str, Any]:
     # how the run was made, beside what it made: the record a shipped policy carries
     settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()
                 if k != "func"}
+    settings["bc_alpha"] = bc_alpha(args)  # as resolved: None is plain TD3, as in older records
     record = {**summary, "settings": settings, "reward": asdict(reward), "commit": commit,
               RECORD_KEY: decision_settings(loaded.config)}
     (out / "summary.json").write_text(json.dumps(record, indent=1), encoding="utf-8")
@@ -239,7 +269,7 @@ def _start(model: Any, args: argparse.Namespace, out: Path) -> dict[str, Any]:
 def make_td3(env: Any, args: argparse.Namespace) -> Any:
     """TD3 as `safemove train` runs it on `env` (a VecEnv of SafeMoveEnv): one gradient step per
     transition collected (gradient_steps=-1), whatever the number of envs; TD3+BC on DWA's
-    choice with --bc-alpha. The replay buffer keeps DWA's choice with every transition."""
+    choice unless --bc-alpha is off (`bc_alpha`). The replay buffer keeps DWA's choice with every transition."""
     import numpy as np
     from stable_baselines3 import TD3
     from stable_baselines3.common.noise import NormalActionNoise
@@ -255,9 +285,10 @@ def make_td3(env: Any, args: argparse.Namespace) -> Any:
         "action_noise": NormalActionNoise(np.zeros(2), np.full(2, args.action_noise)),
         "policy_kwargs": {"net_arch": list(args.net)}, "seed": args.seed, "device": "cpu",
         "verbose": 0}
-    if args.bc_alpha is None:
+    alpha = bc_alpha(args)
+    if alpha is None:
         return TD3("MlpPolicy", env, **settings)
-    return TD3BC("MlpPolicy", env, bc_alpha=args.bc_alpha, **settings)
+    return TD3BC("MlpPolicy", env, bc_alpha=alpha, **settings)
 
 
 def _export(model: Path, spec_path: Path, onnx_path: Path) -> dict[str, Any]:
