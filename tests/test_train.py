@@ -133,7 +133,7 @@ def test_train_writes_a_model_and_an_actor_that_eval_runs(tmp_path, safemove):
     summary = json.loads(run.stdout.strip().splitlines()[-1])
     # the Monitor's episodes (summary) and its file (outcomes) agree, one row per episode
     assert summary["steps"] == 120 and summary["episodes"] == 2
-    assert summary["outcomes"] == {"timeout": 2}
+    assert summary["outcomes"] == summary["td3_outcomes"] == {"timeout": 2}  # no demonstrations
     assert max(summary["export_parity_max_abs"].values()) < 1e-5
     for name in ("td3.zip", "actor.onnx", "spec.json", "monitor.csv",
                  "checkpoints/td3_100_steps.zip"):
@@ -199,6 +199,8 @@ def test_the_bc_td3_recipe_clones_dwa_before_td3(tmp_path, safemove):
     assert summary["bc_mse"] < 0.02  # an untrained actor is off by ~0.3 (action units)
     assert summary["critic_warmup_loss"] is not None
     assert summary["total_env_steps"] == 320
+    # the 20 TD3 steps end no episode: every monitored one is a demonstration
+    assert summary["episodes"] == summary["demo_episodes"] and summary["td3_episodes"] == 0
     for name in ("checkpoints/bc.zip", "learning_curve.png", "actor.onnx"):
         assert (out / name).is_file(), name
     record = json.loads((out / "summary.json").read_text())  # what a shipped model carries

@@ -13,10 +13,10 @@ Its defaults are the shipped recipe (README, Training): `safemove train -o RUN -
 --seed 0` trains as the shipped policies were trained. The episodes run in --envs worker
 processes (`vec_env.make_vec_env`), so the simulation is shared out; the gradient steps stay in
 this process, between VecEnv steps. Each VecEnv step collects one transition per env and is
-followed by as many gradient steps
-(gradient_steps=-1): the update-to-data ratio stays one whatever N is, which also means that
-past --learning-starts the gradient steps bound the rate more than the simulation does. A run
-is reproducible from (--seed, --envs); the same seed with another N gives other episodes.
+followed by as many gradient steps (gradient_steps=-1): the update-to-data ratio stays one
+whatever N is, which also means that past --learning-starts the gradient steps bound the rate
+more than the simulation does. A run is reproducible from (--seed, --envs); the same seed with
+another N gives other episodes.
 """
 
 from __future__ import annotations
@@ -219,6 +219,7 @@ def run_train(args: argparse.Namespace) -> dict[str, Any]:
     model.save(final)
     episodes = _episodes(out / "monitor.csv")
     returns = [float(row["r"]) for row in episodes]
+    td3 = episodes[start.get("demo_episodes", 0):]
     export = _export(final, out / "spec.json", out / "actor.onnx")
     plot_curves({spec.name: out / "monitor.csv"}, out / "learning_curve.png",
                 td3_from=start.get("demo_steps"))
@@ -227,6 +228,8 @@ def run_train(args: argparse.Namespace) -> dict[str, Any]:
                "total_env_steps": total, "envs": n, "wall_s": round(wall, 1),
                "steps_per_s": round(total / wall, 1), "episodes": len(episodes),
                "outcomes": dict(Counter(row["outcome"] for row in episodes)),
+               # the monitor holds the demonstrations' episodes first, then TD3's
+               "td3_episodes": len(td3), "td3_outcomes": dict(Counter(r["outcome"] for r in td3)),
                "mean_return_last_50": (round(float(np.mean(returns[-50:])), 2)
                                        if returns else None),
                "model": str(final), "actor": str(out / "actor.onnx"),
@@ -269,7 +272,8 @@ def _start(model: Any, args: argparse.Namespace, out: Path) -> dict[str, Any]:
 def make_td3(env: Any, args: argparse.Namespace) -> Any:
     """TD3 as `safemove train` runs it on `env` (a VecEnv of SafeMoveEnv): one gradient step per
     transition collected (gradient_steps=-1), whatever the number of envs; TD3+BC on DWA's
-    choice unless --bc-alpha is off (`bc_alpha`). The replay buffer keeps DWA's choice with every transition."""
+    choice unless --bc-alpha is off (`bc_alpha`). The replay buffer keeps DWA's choice with
+    every transition."""
     import numpy as np
     from stable_baselines3 import TD3
     from stable_baselines3.common.noise import NormalActionNoise
