@@ -540,24 +540,71 @@ def add_plot(p: argparse.ArgumentParser) -> None:
 def plot_run(args: argparse.Namespace) -> int:
     """A picture of one flight recording: the path, the remembered obstacles, the people and
     the plans in odom; speed, shield interventions and stage times against time."""
+    out = _png_output("plot", args.output)
+    from sim_stub.log_plot import plot_log
+
+    return print_figures(plot_log(args.log.expanduser(), out), args.json)
+
+
+def _png_output(command: str, path: Path) -> Path:
+    """The picture's path, once matplotlib is known to be there and the file writable: a
+    command that would fail there fails before its work, in one line."""
     import os
 
     try:
         import matplotlib  # noqa: F401
     except ImportError:
-        raise UserError("plot: matplotlib is not installed; install it with"
+        raise UserError(f"{command}: matplotlib is not installed; install it with"
                         " pip install 'safemove-rl[plots]'") from None
-    out = args.output.expanduser()
+    out = path.expanduser()
     folder = out.parent if str(out.parent) else Path(".")
     if out.is_dir():
-        raise UserError(f"plot: {out} is a directory, not a file")
+        raise UserError(f"{command}: {out} is a directory, not a file")
     if not folder.is_dir():
-        raise UserError(f"plot: cannot write {out}: {folder} is not a directory")
+        raise UserError(f"{command}: cannot write {out}: {folder} is not a directory")
     if not os.access(folder, os.W_OK) or (out.exists() and not os.access(out, os.W_OK)):
-        raise UserError(f"plot: cannot write {out}: permission denied")
-    from sim_stub.log_plot import plot_log
+        raise UserError(f"{command}: cannot write {out}: permission denied")
+    return out
 
-    return print_figures(plot_log(args.log.expanduser(), out), args.json)
+
+def _labelled_run_dir(text: str) -> tuple[str, Path]:
+    """curves' `[LABEL=]DIR`; the label defaults to the directory's name."""
+    label, sep, folder = text.rpartition("=")
+    if not (folder and (label or not sep)):
+        raise argparse.ArgumentTypeError(f"expected [LABEL=]DIR, got {text!r}")
+    path = Path(folder).expanduser()
+    return (label if sep else path.resolve().name or str(path)), path
+
+
+def add_curves(p: argparse.ArgumentParser) -> None:
+    p.add_argument("runs", type=_labelled_run_dir, nargs="+", metavar="[LABEL=]DIR",
+                   help="`safemove train` run directories (their monitor.csv; one still"
+                        " training is drawn as far as it has got)")
+    p.add_argument("-o", "--output", type=Path, required=True, metavar="OUT.png",
+                   help="the PNG file to write (its folder must exist)")
+    p.add_argument("--window", type=int_at_least(1), default=50,
+                   help="episodes each point averages (default 50)")
+    p.add_argument("--json", action="store_true", help="print only the JSON summary")
+    p.set_defaults(func=curves_run)
+
+
+def curves_run(args: argparse.Namespace) -> int:
+    """Several training runs' learning curves in one figure (success rate and return against
+    environment steps), to compare variants, seeds or recipes; each run's last window in
+    figures."""
+    from sim_stub.train.curves import plot_curves, run_figures
+
+    labels = [label for label, _ in args.runs]
+    if len(set(labels)) < len(labels):
+        raise UserError(f"curves: a label appears twice in {labels}: name them LABEL=DIR")
+    out = _png_output("curves", args.output)
+    runs = {label: folder for label, folder in args.runs}
+    figures = run_figures(runs, args.window)  # reads and checks every monitor before drawing
+    starts = {f["td3_from"] for f in figures.values()}
+    plot_curves({label: folder / "monitor.csv" for label, folder in runs.items()}, out,
+                args.window, td3_from=starts.pop() if len(starts) == 1 else None)
+    return print_figures({"output": str(out), "window": args.window, "runs": figures},
+                         args.json)
 
 
 def add_sim(p: argparse.ArgumentParser) -> None:

@@ -61,6 +61,9 @@ COMMANDS: dict[str, tuple[str, bool, str]] = {
                " and evaluation records")),
     "eval": ("sim_stub.commands:add_eval", False,
               "seeded episodes per scenario, lock-stepped, scored as in the paper's table"),
+    "curves": ("sim_stub.commands:add_curves", False,
+               ("training runs' learning curves in one figure: success rate and return against"
+                " environment steps")),
     "compare": ("sim_stub.commands:add_compare", False,
                  ("eval results on the same episodes: success with 95 %% intervals, each against"
                   " the first (paired by episode, or between training runs)")),

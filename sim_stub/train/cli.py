@@ -22,7 +22,6 @@ another N gives other episodes.
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import logging
 import math
@@ -177,7 +176,7 @@ def run_train(args: argparse.Namespace) -> dict[str, Any]:
 
     from export.ship import stamp
     from sim_stub.train.callbacks import ProgressCallback
-    from sim_stub.train.curves import plot_curves
+    from sim_stub.train.curves import plot_curves, read_monitor
     from sim_stub.train.ship import training_record
     from sim_stub.train.vec_env import make_vec_env
 
@@ -217,7 +216,7 @@ def run_train(args: argparse.Namespace) -> dict[str, Any]:
     wall = time.monotonic() - t0
     env.close()  # on an error, the workers (daemons) end with this process
     model.save(final)
-    episodes = _episodes(out / "monitor.csv")
+    episodes = read_monitor(out / "monitor.csv")
     returns = [float(row["r"]) for row in episodes]
     td3 = episodes[start.get("demo_episodes", 0):]
     export = _export(final, out / "spec.json", out / "actor.onnx")
@@ -306,10 +305,3 @@ def _export(model: Path, spec_path: Path, onnx_path: Path) -> dict[str, Any]:
     recorded, source = simulated_observations(actor.spec, PARITY_COUNT)
     return export_actor(actor, model, onnx_path, recorded, source)
 
-
-def _episodes(monitor_csv: Path) -> list[dict[str, str]]:
-    """The Monitor file's rows (r, l, t, outcome), in the order the episodes ended; its first
-    line is a JSON header."""
-    with monitor_csv.open(encoding="utf-8", newline="") as f:
-        next(f)
-        return list(csv.DictReader(f))

@@ -10,10 +10,17 @@ writes them). Both curves are means over the last `window` episodes, so a curve 
 from __future__ import annotations
 
 import csv
+import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+
+from runtime.errors import UserError
+
+MONITOR_COLUMNS = ("r", "l", "outcome")
 
 
 @dataclass(frozen=True)
@@ -23,11 +30,41 @@ class Curve:
     episode_return: np.ndarray  # rolling mean return
 
 
+def read_monitor(monitor_csv: Path) -> list[dict[str, str]]:
+    """The Monitor file's rows (r, l, t, outcome), in the order the episodes ended, after its
+    JSON header line; a file that is not one, or a row that does not parse, is refused naming
+    the file and line."""
+    try:
+        with monitor_csv.open(encoding="utf-8", newline="") as f:
+            if not f.readline().startswith("#"):
+                raise UserError(f"{monitor_csv}: line 1: not a training monitor (no '#{{...}}'"
+                                " header)")
+            reader = csv.DictReader(f)
+            missing = [c for c in MONITOR_COLUMNS if c not in (reader.fieldnames or ())]
+            if missing:
+                raise UserError(f"{monitor_csv}: line 2: no column {', '.join(missing)} (a"
+                                " training monitor has r, l, t, outcome)")
+            rows = list(reader)
+    except FileNotFoundError:
+        raise UserError(f"{monitor_csv}: file not found (not a `safemove train` run"
+                        " directory?)") from None
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise UserError(f"{monitor_csv}: cannot read the training monitor: {exc}") from None
+    for line, row in enumerate(rows, start=3):
+        try:
+            ok = (math.isfinite(float(row["r"])) and int(row["l"]) > 0
+                  and bool(row["outcome"]))
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise UserError(f"{monitor_csv}: line {line}: not an episode (a finite return r,"
+                            f" a length l ≥ 1 and an outcome): {row}")
+    return rows
+
+
 def read_curve(monitor_csv: Path, window: int) -> Curve:
     """The rolling curves of one run (empty arrays while fewer than `window` episodes)."""
-    with monitor_csv.open(encoding="utf-8", newline="") as f:
-        next(f)  # the JSON header line
-        rows = list(csv.DictReader(f))
+    rows = read_monitor(monitor_csv)
     lengths = np.array([int(r["l"]) for r in rows])
     returns = np.array([float(r["r"]) for r in rows])
     success = np.array([r["outcome"] == "success" for r in rows], dtype=float)
@@ -37,6 +74,39 @@ def read_curve(monitor_csv: Path, window: int) -> Curve:
     kernel = np.ones(window) / window
     return Curve(np.cumsum(lengths)[window - 1:], np.convolve(success, kernel, "valid"),
                  np.convolve(returns, kernel, "valid"))
+
+
+def run_figures(runs: dict[str, Path], window: int) -> dict[str, dict[str, Any]]:
+    """Per run directory (label → folder): its episodes and env steps so far, success (%) and
+    mean return over its last `window` episodes (None while fewer), whether it has finished
+    (its summary.json is written last) and where TD3 took over from the demonstrations."""
+    figures = {}
+    for label, folder in runs.items():
+        if not folder.is_dir():
+            raise UserError(f"{folder}: not a directory (a `safemove train` run directory)")
+        rows = read_monitor(folder / "monitor.csv")
+        summary_path = folder / "summary.json"
+        summary: dict[str, Any] = {}
+        if summary_path.exists():
+            try:
+                summary = json.loads(summary_path.read_text(encoding="utf-8"))
+            except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+                raise UserError(f"{summary_path}: not a readable JSON file: {exc}") from None
+            if not isinstance(summary, dict):
+                raise UserError(f"{summary_path}: not a `safemove train` summary")
+        demo = summary.get("demo_steps")  # none in a plain TD3 run's
+        last = rows[-window:] if len(rows) >= window else []
+        figures[label] = {
+            "episodes": len(rows),
+            "env_steps": sum(int(r["l"]) for r in rows),
+            "success_pct_last": (round(100.0 * sum(r["outcome"] == "success" for r in last)
+                                       / window, 1) if last else None),
+            "return_last": (round(sum(float(r["r"]) for r in last) / window, 2)
+                            if last else None),
+            "finished": bool(summary),
+            "td3_from": demo if isinstance(demo, int) and demo > 0 else None,
+        }
+    return figures
 
 
 def plot_curves(runs: dict[str, Path], out_png: Path, window: int = 50,
