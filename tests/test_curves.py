@@ -60,6 +60,15 @@ def test_a_run_shorter_than_the_window_has_no_last_window(tmp_path, capsys):
     assert result["runs"]["a"]["return_last"] is None
 
 
+def test_a_last_line_still_being_written_is_left_for_the_next_read(tmp_path, capsys):
+    run = _run(tmp_path / "run", [(1.0, 10, "success"), (2.0, 20, "collision")], finished=False)
+    with (run / "monitor.csv").open("a", encoding="utf-8") as f:
+        f.write("3.5,3")  # a run still training, caught mid-line
+    code, result, _ = _curves(capsys, str(run), "-o", str(tmp_path / "c.png"), "--window", "2")
+    assert code == 0
+    assert result["runs"]["run"]["episodes"] == 2 and result["runs"]["run"]["env_steps"] == 30
+
+
 @pytest.mark.parametrize(("monitor", "expected"), [
     ("r,l,t,outcome\n1,10,0,success\n", "line 1: not a training monitor"),
     (HEADER + "r,t,outcome\n1,0,success\n", "line 2: no column l"),

@@ -33,23 +33,27 @@ class Curve:
 def read_monitor(monitor_csv: Path) -> list[dict[str, str]]:
     """The Monitor file's rows (r, l, t, outcome), in the order the episodes ended, after its
     JSON header line; a file that is not one, or a row that does not parse, is refused naming
-    the file and line."""
+    the file and line. A last line without its newline is one the monitor of a run still
+    training is writing: it is left for the next read."""
     try:
-        with monitor_csv.open(encoding="utf-8", newline="") as f:
-            if not f.readline().startswith("#"):
-                raise UserError(f"{monitor_csv}: line 1: not a training monitor (no '#{{...}}'"
-                                " header)")
-            reader = csv.DictReader(f)
-            missing = [c for c in MONITOR_COLUMNS if c not in (reader.fieldnames or ())]
-            if missing:
-                raise UserError(f"{monitor_csv}: line 2: no column {', '.join(missing)} (a"
-                                " training monitor has r, l, t, outcome)")
-            rows = list(reader)
+        text = monitor_csv.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise UserError(f"{monitor_csv}: file not found (not a `safemove train` run"
                         " directory?)") from None
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+    except (OSError, UnicodeDecodeError) as exc:
         raise UserError(f"{monitor_csv}: cannot read the training monitor: {exc}") from None
+    lines = text[:text.rfind("\n") + 1].splitlines()
+    if not lines or not lines[0].startswith("#"):
+        raise UserError(f"{monitor_csv}: line 1: not a training monitor (no '#{{...}}' header)")
+    try:
+        reader = csv.DictReader(lines[1:])
+        missing = [c for c in MONITOR_COLUMNS if c not in (reader.fieldnames or ())]
+        rows = list(reader)
+    except csv.Error as exc:
+        raise UserError(f"{monitor_csv}: cannot read the training monitor: {exc}") from None
+    if missing:
+        raise UserError(f"{monitor_csv}: line 2: no column {', '.join(missing)} (a training"
+                        " monitor has r, l, t, outcome)")
     for line, row in enumerate(rows, start=3):
         try:
             ok = (math.isfinite(float(row["r"])) and int(row["l"]) > 0
