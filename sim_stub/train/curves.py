@@ -10,7 +10,6 @@ writes them). Both curves are means over the last `window` episodes, so a curve 
 from __future__ import annotations
 
 import csv
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from runtime.errors import UserError
+from sim_stub.train.ship import read_json
 
 MONITOR_COLUMNS = ("r", "l", "outcome")
 
@@ -92,10 +92,7 @@ def run_figures(runs: dict[str, Path], window: int) -> dict[str, dict[str, Any]]
         summary_path = folder / "summary.json"
         summary: dict[str, Any] = {}
         if summary_path.exists():
-            try:
-                summary = json.loads(summary_path.read_text(encoding="utf-8"))
-            except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-                raise UserError(f"{summary_path}: not a readable JSON file: {exc}") from None
+            summary = read_json(summary_path)
             if not isinstance(summary, dict):
                 raise UserError(f"{summary_path}: not a `safemove train` summary")
         demo = summary.get("demo_steps")  # none in a plain TD3 run's

@@ -26,7 +26,8 @@ EVAL_KEYS = ("success_rate", "collision_rate", "timeout_rate", "at_fault_collisi
              "shield_interventions_per_episode")
 
 
-def _read_json(path: Path) -> Any:
+def read_json(path: Path) -> Any:
+    """A JSON file, or one line naming it when it is missing or does not parse."""
     try:
         return json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
@@ -76,14 +77,14 @@ def ship(run_dir: Path, evaluations: list[Path]) -> Path:
     """Install the run's actor as its variant's shipped policy; returns the installed file."""
     from export.ship import stamp
 
-    summary = _read_json(run_dir / "summary.json")
+    summary = read_json(run_dir / "summary.json")
     if not isinstance(summary, dict):
         raise UserError(f"{run_dir / 'summary.json'}: not a `safemove train` summary")
     settings = summary.get("settings")
     if isinstance(settings, dict) and settings.get("surround_people"):
         raise UserError(f"{run_dir / 'summary.json'}: trained with --surround-people, seeing"
                         " every person around exactly; the robot has no such sensor")
-    spec = _read_json(run_dir / "spec.json")
+    spec = read_json(run_dir / "spec.json")
     variant = spec.get("name") if isinstance(spec, dict) else None
     if variant not in shipped.VARIANTS:
         raise UserError(f"{run_dir / 'spec.json'}: spec '{variant}' is not a shipped variant"
@@ -97,7 +98,7 @@ def ship(run_dir: Path, evaluations: list[Path]) -> Path:
                                   if isinstance(summary.get("actor"), str) else set())
     records = []
     for path in evaluations:
-        result = _read_json(path)
+        result = read_json(path)
         if not isinstance(result, dict) or result.get("planner") != "safemove":
             raise UserError(f"{path}: not a `safemove eval --planner safemove --json` result")
         model = result.get("model")
