@@ -11,7 +11,9 @@ episodes do. Given several training runs of each (every run scored on the same e
 comparison is between runs: each run's rate is one sample, the rate's interval is
 Student's t over the runs, and two planners differ by Welch's t-test. Episodes of one run may
 come from several files (the test and the validation seeds), pooled; no (scenario, seed) may
-appear twice in one run.
+appear twice in one run. Eval's what-ifs of sensing (`--camera-hfov`, `--surround-people`)
+change what the robot knows, not the episodes, so planners may differ in them (what the sensing
+buys, paired by episode).
 
 Success is the default outcome; the others count collisions, and, since a policy's decisions
 can only avoid people it saw coming, collisions with a person who had been in the camera's view
@@ -35,8 +37,15 @@ from drivers.depth_source import D435_HFOV_DEG
 from runtime.errors import UserError
 from sim_stub.binomial import CONFIDENCE, mcnemar_exact_p, wilson_interval
 
-# the settings that must agree for two results' episodes to be the same episodes
-_CONDITIONS = ("fps", "noise", "crowd", "camera_hfov_deg", "surround_people")
+# the settings that must agree between planners: the crowd makes the world, the frame rate and
+# noise the sensor model every planner is scored under
+_EPISODE_CONDITIONS = ("fps", "noise", "crowd")
+# eval's what-ifs of sensing (a wider camera, people seen all around): the same episodes (the
+# world and the renderer's noise draw from their own seeded streams), the robot knowing more.
+# Planners may differ in them (what the sensing buys, paired by episode); one planner's pooled
+# files may not
+_SENSING = ("camera_hfov_deg", "surround_people")
+_CONDITIONS = _EPISODE_CONDITIONS + _SENSING
 
 OUTCOMES = ("success", "collision", "seen-collision", "unseen-collision")
 
@@ -172,7 +181,7 @@ def _seed_span(seeds: set[int]) -> str:
 
 def _check_same_episodes(reference: Evaluation, others: list[Evaluation]) -> None:
     for other in others:
-        if other.conditions != reference.conditions:
+        if any(other.conditions[k] != reference.conditions[k] for k in _EPISODE_CONDITIONS):
             raise UserError(f"compare: {other.label} ran with"
                             f" {_differ(other.conditions, reference.conditions)} in"
                             f" {reference.label}: not the same episodes")
@@ -274,6 +283,7 @@ def compare(evaluations: list[Evaluation]) -> dict[str, Any]:
             "confidence": CONFIDENCE,
             "sources": {ev.label: [[str(p) for p in run.sources] for run in ev.runs]
                         for ev in evaluations},
+            "sensing": {ev.label: {k: ev.conditions[k] for k in _SENSING} for ev in evaluations},
             "scenarios": scenarios}
 
 
@@ -286,9 +296,15 @@ def table(result: dict[str, Any]) -> str:
     the episodes only the reference / only this one ended in the outcome; between runs: the
     difference's interval)."""
     ref = result["reference"]
-    rows = [f"outcome: {result['outcome']}",
-            (f"{'scenario':<16}{'planner':<22}{'runs':>5}{'rate':>9}{'95 % CI':>14}"
-             f"{'vs ' + ref:>22}{'only ref/this or CI':>22}{'p':>8}")]
+    rows = [f"outcome: {result['outcome']}"]
+    for label, s in result["sensing"].items():
+        seen = ([f"a {s['camera_hfov_deg']:g} deg camera"]
+                if s["camera_hfov_deg"] != D435_HFOV_DEG else [])
+        seen += ["every person around (--surround-people)"] if s["surround_people"] else []
+        if seen:
+            rows.append(f"{label} sees {' and '.join(seen)}")
+    rows.append(f"{'scenario':<16}{'planner':<22}{'runs':>5}{'rate':>9}{'95 % CI':>14}"
+                f"{'vs ' + ref:>22}{'only ref/this or CI':>22}{'p':>8}")
     for scenario, s in result["scenarios"].items():
         for label, r in s["rates"].items():
             vs, detail, p = "", "", ""

@@ -11,7 +11,7 @@ from scipy.stats import t as student_t
 
 from runtime.errors import UserError
 from sim_stub.binomial import mcnemar_exact_p, wilson_interval
-from sim_stub.compare import Outcome, compare, load_evaluation
+from sim_stub.compare import Outcome, compare, load_evaluation, table
 
 
 def _wilson(k: int, n: int, z: float = 1.959963984540054) -> tuple[float, float]:
@@ -83,11 +83,9 @@ def test_compare_refuses_results_that_are_not_the_same_episodes(tmp_path):
     old = load_evaluation("old", [[_result(tmp_path / "o.json", {"a": ["success"] * 4},
                                            camera_hfov_deg=None)]])
     assert compare([ref, old])["scenarios"]["a"]["against_reference"]["old"]["p_value"] == 1.0
-    # and saw people with the camera alone
-    surround = load_evaluation("surround", [[_result(tmp_path / "sp.json", {"a": ["success"] * 4},
-                                                     surround_people=True)]])
-    with pytest.raises(UserError, match="surround_people=True"):
-        compare([ref, surround])
+    with pytest.raises(UserError, match="noise=False"):
+        compare([ref, load_evaluation("clean", [[_result(tmp_path / "n.json",
+                                                         {"a": ["success"] * 4}, noise=False)]])])
     with pytest.raises(UserError, match="seed 0 appears twice"):
         load_evaluation("twice", [[tmp_path / "r.json", tmp_path / "r.json"]])
     # a second run of one planner may repeat the first's seeds, but must have them all
@@ -215,3 +213,28 @@ def test_compare_cli_prints_the_table_and_json_and_refuses_with_exit_2(tmp_path,
     assert missing.wait(timeout=60) == 2
     (line,) = missing.stderr.strip().splitlines()
     assert "none.json" in line and "Traceback" not in line
+
+
+def test_sensing_what_ifs_pair_with_the_camera_alone_but_never_pool_with_it(tmp_path):
+    """A wider camera or people seen all around: the same episodes, the robot knowing more, so
+    what it buys is paired by episode; one planner's pooled files must agree on it."""
+    camera = _result(tmp_path / "c.json", {"a": ["collision", "collision", "success", "success"]})
+    around = _result(tmp_path / "s.json", {"a": ["success"] * 4}, surround_people=True)
+    wide = _result(tmp_path / "w.json", {"a": ["success"] * 3 + ["collision"]},
+                   camera_hfov_deg=120.0)
+    out = compare([load_evaluation("camera", [[camera]]), load_evaluation("around", [[around]]),
+                   load_evaluation("wide", [[wide]])])
+    paired = out["scenarios"]["a"]["against_reference"]
+    assert (paired["around"]["only_reference"], paired["around"]["only_this"]) == (0, 2)
+    assert (paired["wide"]["only_reference"], paired["wide"]["only_this"]) == (1, 2)
+    assert out["sensing"]["around"] == {"camera_hfov_deg": 87.0, "surround_people": True}
+    assert out["sensing"]["wide"] == {"camera_hfov_deg": 120.0, "surround_people": False}
+    text = table(out)
+    assert "around sees every person around (--surround-people)" in text
+    assert "wide sees a 120 deg camera" in text and "camera sees" not in text
+    # results from before --surround-people existed saw people with the camera alone
+    old = _result(tmp_path / "o.json", {"a": ["success"] * 4}, first_seed=4)
+    assert load_evaluation("old", [[old]]).conditions["surround_people"] is False
+    with pytest.raises(UserError, match=r"s\.json: ran with surround_people=True \(against"
+                                        r" False\)"):
+        load_evaluation("mixed", [[old, around]])
