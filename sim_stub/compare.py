@@ -144,9 +144,11 @@ def _read(path: Path, outcome: Outcome) -> tuple[dict[str, Any], list[tuple[str,
     return conditions, rows
 
 
-def _differ(a: dict[str, Any], b: dict[str, Any]) -> str:
-    """The settings in which two results' conditions differ, as `key=a (against b)`."""
-    return ", ".join(f"{k}={a[k]} (against {b[k]})" for k in _CONDITIONS if a[k] != b[k])
+def _differ(a: dict[str, Any], b: dict[str, Any],
+            keys: tuple[str, ...] = _CONDITIONS) -> str:
+    """The settings among `keys` in which two results' conditions differ, as `key=a (against
+    b)`."""
+    return ", ".join(f"{k}={a[k]} (against {b[k]})" for k in keys if a[k] != b[k])
 
 
 def load_evaluation(label: str, runs: list[list[Path]],
@@ -181,10 +183,9 @@ def _seed_span(seeds: set[int]) -> str:
 
 def _check_same_episodes(reference: Evaluation, others: list[Evaluation]) -> None:
     for other in others:
-        if any(other.conditions[k] != reference.conditions[k] for k in _EPISODE_CONDITIONS):
-            raise UserError(f"compare: {other.label} ran with"
-                            f" {_differ(other.conditions, reference.conditions)} in"
-                            f" {reference.label}: not the same episodes")
+        if differ := _differ(other.conditions, reference.conditions, _EPISODE_CONDITIONS):
+            raise UserError(f"compare: {other.label} ran with {differ} in {reference.label}:"
+                            " not the same episodes")
     expected = reference.runs[0].outcome
     for ev in [reference, *others]:
         for i, run in enumerate(ev.runs):

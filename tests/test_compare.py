@@ -83,9 +83,11 @@ def test_compare_refuses_results_that_are_not_the_same_episodes(tmp_path):
     old = load_evaluation("old", [[_result(tmp_path / "o.json", {"a": ["success"] * 4},
                                            camera_hfov_deg=None)]])
     assert compare([ref, old])["scenarios"]["a"]["against_reference"]["old"]["p_value"] == 1.0
-    with pytest.raises(UserError, match="noise=False"):
-        compare([ref, load_evaluation("clean", [[_result(tmp_path / "n.json",
-                                                         {"a": ["success"] * 4}, noise=False)]])])
+    # the refusal names what makes other episodes, not a sensing what-if beside it
+    clean = load_evaluation("clean", [[_result(tmp_path / "n.json", {"a": ["success"] * 4},
+                                               noise=False, surround_people=True)]])
+    with pytest.raises(UserError, match=r"clean ran with noise=False \(against True\) in dwa:"):
+        compare([ref, clean])
     with pytest.raises(UserError, match="seed 0 appears twice"):
         load_evaluation("twice", [[tmp_path / "r.json", tmp_path / "r.json"]])
     # a second run of one planner may repeat the first's seeds, but must have them all
